@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# Fresh-machine set-up for frepvdb (Debian bookworm, run as root or with sudo).
+# Idempotent: each step checks before it acts, so a second run takes seconds.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+SYS_PY=/usr/bin/python3
+if [ ! -x "$SYS_PY" ]; then
+  echo "setup: $SYS_PY not found; frepvdb needs the system Python that python3-openvdb is built for." >&2
+  exit 1
+fi
+
+need_apt=()
+"$SYS_PY" -c "import pyopenvdb" 2>/dev/null || "$SYS_PY" -c "import openvdb" 2>/dev/null || need_apt+=(python3-openvdb)
+"$SYS_PY" -c "import ensurepip, venv" 2>/dev/null || need_apt+=(python3-venv)
+if [ ${#need_apt[@]} -gt 0 ]; then
+  if ! command -v apt-get >/dev/null 2>&1; then
+    cat >&2 <<MSG
+setup: OpenVDB's Python module is not importable and apt-get is not available.
+  On Debian/Ubuntu:  apt-get install python3-openvdb python3-venv
+  Elsewhere:         conda install -c conda-forge openvdb   (the module is named 'openvdb' there)
+  then create .venv from that Python with --system-site-packages and run: pip install -e '.[dev]' 'numpy<2'
+MSG
+    exit 1
+  fi
+  SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
+  echo "setup: apt-get install ${need_apt[*]}"
+  $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y "${need_apt[@]}" >/dev/null 2>&1 || {
+    $SUDO apt-get update >/dev/null
+    $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y "${need_apt[@]}"
+  }
+fi
+
+if [ ! -x .venv/bin/python ]; then
+  echo "setup: creating .venv from $SYS_PY --system-site-packages"
+  "$SYS_PY" -m venv --system-site-packages .venv
+fi
+
+stamp=.venv/.frepvdb-installed
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+  echo "setup: pip install -e .[dev] (numpy<2)"
+  .venv/bin/python -m pip install --quiet --upgrade pip
+  .venv/bin/python -m pip install --quiet -e '.[dev]' 'numpy<2'
+  touch "$stamp"
+fi
+.venv/bin/python -c "import numpy, pipeline
+try:
+    import openvdb as vdb
+except ImportError:
+    import pyopenvdb as vdb
+assert int(numpy.__version__.split('.')[0]) < 2, numpy.__version__
+" || { echo "setup: the environment does not import (see above)" >&2; exit 1; }

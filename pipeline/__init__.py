@@ -1,0 +1,1 @@
+"""frepvdb: FRep and mesh fields to sparse OpenVDB grids."""

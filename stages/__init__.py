@@ -1,0 +1,1 @@
+"""Pipeline stages: each maps config parameters onto pipeline library calls."""

@@ -1,0 +1,57 @@
+"""R-functions for set operations on FRep fields (f > 0 inside), on NumPy arrays.
+
+Three families, chosen per operation with ``rfunc``:
+
+* ``min_max`` - bsp-fields eq. 1: exact where one argument dominates, C1-discontinuous on f1 = f2.
+* ``r0``      - bsp-fields eq. 2: f1 + f2 +- sqrt(f1^2 + f2^2); C1 except where f1 = f2 = 0.
+* ``sardf``   - smooth approximation of min/max in the spirit of the SARDF operations
+  [FPSM06] (Fayolle, Pasko, Schmitt, Mirenkov 2006). Outside an angular window around the
+  diagonal f1 = f2 it *is* min/max (so it keeps the distance property of its arguments);
+  inside the window |f1 - f2| < k * rho, rho = sqrt(f1^2 + f2^2), the |f1 - f2| in
+  min = (f1 + f2 - |f1 - f2|)/2 is replaced by the C1 quadratic (u^2 + (k rho)^2) / (2 k rho).
+  The result is homogeneous of degree 1 and C1 away from f1 = f2 = 0; for k < 1 its sign
+  equals the sign of min/max everywhere (the window never meets the lines f1 = 0 or f2 = 0
+  on the positive side), so it is an R-function and keeps the zero set exactly. This is our
+  formulation of the FPSM06 idea; docs/rfunctions.md states how it differs from the paper.
+
+Every function here has an affine-arithmetic twin in :mod:`pipeline.ops`, which dispatches on
+the argument type; model nodes call the ``ops`` versions so that evaluation and bounding share
+one formula.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+FAMILIES = ("min_max", "r0", "sardf")
+SARDF_K = 0.5  # half-width of the smoothing window (|f1-f2| < k*rho); must be < 1 to stay an R-function
+
+
+def _smooth_abs(u: np.ndarray, rho: np.ndarray, k: float) -> np.ndarray:
+    """|u| outside the window |u| < k*rho, the C1 quadratic (u^2 + (k rho)^2)/(2 k rho) inside it."""
+    w = k * rho
+    with np.errstate(divide="ignore", invalid="ignore"):
+        quad = (u * u + w * w) / (2.0 * w)
+    return np.where(np.abs(u) < w, quad, np.abs(u))
+
+
+def r_and(f1: np.ndarray, f2: np.ndarray, family: str = "r0", k: float = SARDF_K) -> np.ndarray:
+    """R-conjunction (intersection) of two fields."""
+    if family == "min_max":
+        return np.minimum(f1, f2)
+    if family == "r0":
+        return f1 + f2 - np.sqrt(f1 * f1 + f2 * f2)
+    if family == "sardf":
+        rho = np.sqrt(f1 * f1 + f2 * f2)
+        return 0.5 * (f1 + f2 - _smooth_abs(f1 - f2, rho, k))
+    raise ValueError(f"unknown R-function family {family!r}")
+
+
+def r_or(f1: np.ndarray, f2: np.ndarray, family: str = "r0", k: float = SARDF_K) -> np.ndarray:
+    """R-disjunction (union) of two fields: -(-f1 AND -f2), which is exact for all three families."""
+    return -r_and(-f1, -f2, family, k)
+
+
+def r_not(f: np.ndarray) -> np.ndarray:
+    """Complement."""
+    return -f

@@ -1,0 +1,442 @@
+"""VTK and mesh files from pyopenvdb grids, written with VTK's own writers, each one atomically.
+
+Conventions (see docs/outputs.md): voxel (i, j, k) has its centre at world (i, j, k) * voxel_size,
+so a ``.vti`` point sits on a voxel centre and a ``.vtu`` hexahedron spans the voxel's cube
+(centre +- voxel_size / 2). Grid values are read in bulk: dense boxes with ``copyToArray``
+(C++) and the active voxels with pyopenvdb's value iterator, which costs O(active voxels).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import xml.etree.ElementTree as ET
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import vtk
+from vtk.util import numpy_support as nps
+
+from pipeline.grid import pack_keys
+from pipeline.vdbio import atomic_output
+
+DEFAULT_MAX_POINTS = 16_000_000  # .vti points before a stride is applied (64 MB per float array)
+DENSE_FALLBACK = 8  # dense box read for inactive samples when the box is <= 8x their count
+SURFACE_SOURCES = ("surface", "frep", "hfrep", "density")  # mesh source preference
+_HEX = np.array(
+    [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], np.int64
+)  # VTK_HEXAHEDRON corner order
+_CORNERS = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], np.int64)
+
+Grids = Mapping[str, Any]
+
+
+# --- reading grids in bulk ----------------------------------------------------------------
+def is_vector(grid: Any) -> bool:
+    """True for Vec3S grids (values are 3-tuples)."""
+    return grid.valueTypeName.startswith("vec3")
+
+
+def union_active_bbox(grids: Iterable[Any]) -> tuple[np.ndarray, np.ndarray] | None:
+    """Index-space (lo, hi) inclusive bounding box of the active voxels of all grids."""
+    boxes = [g.evalActiveVoxelBoundingBox() for g in grids if g.activeVoxelCount() > 0]
+    if not boxes:
+        return None
+    lo = np.min([b[0] for b in boxes], axis=0).astype(np.int64)
+    hi = np.max([b[1] for b in boxes], axis=0).astype(np.int64)
+    return lo, hi
+
+
+def read_dense(grid: Any, lo: Iterable[int], shape: Iterable[int]) -> np.ndarray:
+    """Values (active or not) of the box starting at voxel ``lo``: (nx, ny, nz) or (nx, ny, nz, 3)."""
+    shape = tuple(int(n) for n in shape)
+    arr = np.zeros(shape + ((3,) if is_vector(grid) else ()), dtype=np.float32)
+    grid.copyToArray(arr, tuple(int(c) for c in lo))
+    return arr
+
+
+def active_voxels(grid: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(ijk (N,3) int64, values (N,) or (N,3) float32) of every active voxel; tiles expanded."""
+    coords: list[tuple] = []
+    values: list[Any] = []
+    tiles: list[tuple] = []
+    for item in grid.citerOnValues():
+        if item.count == 1:
+            coords.append(item.min)
+            values.append(item.value)
+        else:
+            tiles.append((item.min, item.max, item.value))
+    ijk = np.asarray(coords, dtype=np.int64).reshape(-1, 3)
+    vals = np.asarray(values, dtype=np.float32).reshape((-1, 3) if is_vector(grid) else (-1,))
+    for lo, hi, value in tiles:
+        axes = [np.arange(a, b + 1, dtype=np.int64) for a, b in zip(lo, hi, strict=True)]
+        box = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        ijk = np.concatenate([ijk, box])
+        fill = np.broadcast_to(np.asarray(value, np.float32), (len(box),) + vals.shape[1:])
+        vals = np.concatenate([vals, fill])
+    return ijk, vals
+
+
+class GridSampler:
+    """Vectorised lookup of a grid's values at integer voxel coordinates.
+
+    Active voxels come from one pass of the value iterator (sorted packed keys, then
+    ``searchsorted``); the few inactive coordinates fall back to an OpenVDB accessor, so tiles and
+    the background are returned exactly as OpenVDB stores them.
+    """
+
+    def __init__(self, grid: Any) -> None:
+        self.grid = grid
+        ijk, vals = active_voxels(grid)
+        keys = pack_keys(ijk) if len(ijk) else np.zeros(0, np.int64)
+        order = np.argsort(keys)
+        self.keys, self.values = keys[order], vals[order]
+        self.active_ijk = ijk[order]
+
+    def sample(self, ijk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(values, active mask) at ``ijk`` (N,3)."""
+        ijk = np.asarray(ijk, dtype=np.int64).reshape(-1, 3)
+        q = pack_keys(ijk)
+        pos = np.minimum(np.searchsorted(self.keys, q), max(len(self.keys) - 1, 0))
+        found = self.keys[pos] == q if len(self.keys) else np.zeros(len(q), bool)
+        out = np.empty((len(q),) + self.values.shape[1:], np.float32)
+        out[found] = self.values[pos[found]]
+        missing = np.flatnonzero(~found)
+        if len(missing):
+            out[missing] = self._inactive_values(ijk[missing])
+        return out, found
+
+    def _inactive_values(self, ijk: np.ndarray) -> np.ndarray:
+        """Values at inactive voxels: one dense read when their box is compact, else an accessor."""
+        lo, hi = ijk.min(axis=0), ijk.max(axis=0)
+        if math.prod((hi - lo + 1).tolist()) <= max(DENSE_FALLBACK * len(ijk), 4096):
+            box = read_dense(self.grid, lo, hi - lo + 1)
+            rel = ijk - lo
+            return box[rel[:, 0], rel[:, 1], rel[:, 2]]
+        acc = self.grid.getConstAccessor()
+        return np.asarray([acc.getValue(tuple(int(c) for c in v)) for v in ijk], np.float32)
+
+
+# --- .vti -----------------------------------------------------------------------------------
+def vti_stride(shape: Iterable[int], max_points: int) -> int:
+    """Smallest stride s with prod(ceil(n / s)) <= max_points."""
+    shape = [int(n) for n in shape]
+    s = max(1, math.floor((math.prod(shape) / max(max_points, 1)) ** (1 / 3)))
+    while math.prod(-(-n // s) for n in shape) > max_points:
+        s += 1
+    return s
+
+
+def _strided_box(grid: Any, lo: np.ndarray, shape: np.ndarray, stride: int) -> np.ndarray:
+    """Values at lo + stride * m over the box, reading one x-plane at a time when strided."""
+    if stride == 1:
+        return read_dense(grid, lo, shape)
+    planes = [
+        read_dense(grid, (i, lo[1], lo[2]), (1, shape[1], shape[2]))[:, ::stride, ::stride]
+        for i in range(int(lo[0]), int(lo[0] + shape[0]), stride)
+    ]
+    return np.concatenate(planes, axis=0)
+
+
+def _point_array(name: str, arr: np.ndarray) -> vtk.vtkDataArray:
+    """VTK array in point order (x fastest) from an (nx, ny, nz[, 3]) array."""
+    if arr.ndim == 4:
+        flat = np.ascontiguousarray(arr.transpose(2, 1, 0, 3).reshape(-1, 3))
+    else:
+        flat = np.ascontiguousarray(arr.transpose(2, 1, 0).reshape(-1))
+    out = nps.numpy_to_vtk(flat, deep=True, array_type=vtk.VTK_FLOAT)
+    out.SetName(name)
+    return out
+
+
+def _field(name: str, values: Iterable[float]) -> vtk.vtkDoubleArray:
+    arr = vtk.vtkDoubleArray()
+    arr.SetName(name)
+    for v in values:
+        arr.InsertNextValue(float(v))
+    return arr
+
+
+def _write(writer: vtk.vtkXMLWriter | vtk.vtkWriter, data: Any, path: Path) -> None:
+    with atomic_output(path) as tmp:
+        writer.SetFileName(str(tmp))
+        writer.SetInputData(data)
+        if writer.Write() != 1:
+            raise OSError(f"VTK could not write {path}")
+
+
+def write_vti(
+    path: str | os.PathLike, grids: Grids, voxel_size: float, max_points: int = DEFAULT_MAX_POINTS
+) -> dict:
+    """Image data over the union active bounding box, every grid a point array (Vec3S: 3 components).
+
+    When the box has more than ``max_points`` points, every ``stride``-th voxel along each axis is
+    kept; origin and spacing are set so points stay at their voxels' world centres.
+    Returns ``{"path", "kind", "stride", "dimensions", "origin", "spacing"}``.
+    """
+    path = Path(path)
+    box = union_active_bbox(grids.values())
+    if box is None:
+        raise ValueError(f"{path.name}: no grid has active voxels, nothing to write")
+    lo, hi = box
+    shape = hi - lo + 1
+    stride = vti_stride(shape, max_points)
+    dims = [-(-int(n) // stride) for n in shape]
+    image = vtk.vtkImageData()
+    image.SetDimensions(*dims)
+    image.SetOrigin(*(lo * voxel_size).tolist())
+    image.SetSpacing(*([stride * voxel_size] * 3))
+    for name, grid in grids.items():
+        image.GetPointData().AddArray(_point_array(name, _strided_box(grid, lo, shape, stride)))
+    image.GetFieldData().AddArray(_field("voxel_size", [voxel_size]))
+    image.GetFieldData().AddArray(_field("stride", [stride]))
+    image.GetFieldData().AddArray(_field("index_origin", lo.tolist()))
+    _write(vtk.vtkXMLImageDataWriter(), image, path)
+    return {
+        "path": path.name, "kind": "vti", "stride": stride, "dimensions": dims,
+        "origin": (lo * voxel_size).tolist(), "spacing": stride * voxel_size,
+    }
+
+
+# --- surface mesh (.vtp, .ply, .obj) --------------------------------------------------------
+@dataclass
+class SurfaceMesh:
+    """Triangle mesh, counter-clockwise seen from outside (normals point out of the solid)."""
+
+    points: np.ndarray  # (N, 3) float32 world
+    triangles: np.ndarray  # (M, 3) int64
+    normals: np.ndarray  # (N, 3) float32 unit point normals
+    source: str  # the grid that was meshed
+    isovalue: float
+    labels: np.ndarray | None = None  # (M,) int32 component label per triangle
+
+    @property
+    def signed_volume(self) -> float:
+        """Enclosed volume (positive when outward-oriented and closed)."""
+        a, b, c = (self.points[self.triangles[:, n]].astype(np.float64) for n in range(3))
+        return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def pick_surface_source(grids: Grids) -> str:
+    """The grid to mesh: the first of surface, frep, hfrep, density that is present and active."""
+    for name in SURFACE_SOURCES:
+        if name in grids and grids[name].activeVoxelCount() > 0:
+            return name
+    raise ValueError(f"no grid to mesh: need one of {', '.join(SURFACE_SOURCES)}; got {sorted(grids)}")
+
+
+def _inside_negative(name: str, grid: Any) -> bool:
+    """Level sets (OpenVDB convention) are negative inside; everything else is FRep, positive inside."""
+    return name == "surface" or _is_level_set(grid)
+
+
+def _is_level_set(grid: Any) -> bool:
+    return str(grid.gridClass) == "level set"
+
+
+def _needs_flip(name: str, grid: Any) -> bool:
+    """Whether volumeToMesh's triangles must be reversed to wind counter-clockwise from outside.
+
+    volumeToMesh winds counter-clockwise around the lower-valued side, and reverses that for
+    grids of class level set (Houdini's clockwise convention). So a counter-clockwise outward
+    mesh needs a flip for level-set-class grids that are negative inside and for other grids that
+    are positive inside: exactly when the two flags agree.
+    """
+    return _is_level_set(grid) == _inside_negative(name, grid)
+
+
+def default_isovalue(name: str, grid: Any) -> float:
+    """0 for fields, 0.5 for fog volumes (density)."""
+    return 0.5 if name == "density" or str(grid.gridClass) == "fog volume" else 0.0
+
+
+def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals."""
+    p = points.astype(np.float64)
+    face = np.cross(p[triangles[:, 1]] - p[triangles[:, 0]], p[triangles[:, 2]] - p[triangles[:, 0]])
+    acc = np.zeros_like(p)
+    for n in range(3):
+        np.add.at(acc, triangles[:, n], face)
+    length = np.linalg.norm(acc, axis=1, keepdims=True)
+    return (acc / np.where(length > 0, length, 1.0)).astype(np.float32)
+
+
+def triangle_labels(
+    component: Any, points: np.ndarray, triangles: np.ndarray, voxel_size: float
+) -> np.ndarray:
+    """Label per triangle: the nearest non-zero ``component`` voxel among the 8 around its centroid."""
+    centroid = points[triangles].astype(np.float64).mean(axis=1) / voxel_size
+    base = np.floor(centroid).astype(np.int64)
+    ijk = (base[:, None, :] + _CORNERS[None]).reshape(-1, 3)
+    values, _ = GridSampler(component).sample(ijk)
+    labels = np.rint(values).astype(np.int32).reshape(-1, 8)
+    dist = np.linalg.norm(ijk.reshape(-1, 8, 3) - centroid[:, None, :], axis=2)
+    dist[labels <= 0] = np.inf
+    best = np.argmin(dist, axis=1)
+    picked = labels[np.arange(len(labels)), best]
+    return np.where(np.isfinite(dist.min(axis=1)), picked, 0).astype(np.int32)
+
+
+def extract_surface(
+    grids: Grids,
+    voxel_size: float,
+    source: str | None = None,
+    isovalue: float | None = None,
+    adaptivity: float = 0.0,
+) -> SurfaceMesh:
+    """Mesh the isosurface of one grid with OpenVDB's volumeToMesh, oriented outwards.
+
+    ``source`` defaults to :func:`pick_surface_source`; ``isovalue`` to 0 (0.5 for density).
+    Quads are split into triangles. When a ``component`` grid is present each triangle gets
+    its label.
+    """
+    name = source or pick_surface_source(grids)
+    grid = grids[name]
+    iso = default_isovalue(name, grid) if isovalue is None else float(isovalue)
+    points, tris, quads = grid.convertToPolygons(isovalue=iso, adaptivity=float(adaptivity))
+    quads = np.asarray(quads, np.int64).reshape(-1, 4)
+    triangles = np.concatenate(
+        [np.asarray(tris, np.int64).reshape(-1, 3), quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]
+    )
+    if _needs_flip(name, grid):
+        triangles = triangles[:, ::-1]
+    triangles = np.ascontiguousarray(triangles)
+    points = np.ascontiguousarray(points, dtype=np.float32)
+    labels = None
+    if "component" in grids and len(triangles):
+        labels = triangle_labels(grids["component"], points, triangles, voxel_size)
+    return SurfaceMesh(points, triangles, vertex_normals(points, triangles), name, iso, labels)
+
+
+def mesh_polydata(mesh: SurfaceMesh) -> vtk.vtkPolyData:
+    """vtkPolyData with point normals ("Normals") and the component label as cell data."""
+    poly = vtk.vtkPolyData()
+    pts = vtk.vtkPoints()
+    pts.SetData(nps.numpy_to_vtk(mesh.points, deep=True, array_type=vtk.VTK_FLOAT))
+    poly.SetPoints(pts)
+    cells = vtk.vtkCellArray()
+    offsets = np.arange(0, 3 * len(mesh.triangles) + 1, 3, dtype=np.int64)
+    cells.SetData(
+        nps.numpy_to_vtk(offsets, deep=True, array_type=vtk.VTK_ID_TYPE),
+        nps.numpy_to_vtk(mesh.triangles.reshape(-1), deep=True, array_type=vtk.VTK_ID_TYPE),
+    )
+    poly.SetPolys(cells)
+    normals = nps.numpy_to_vtk(mesh.normals, deep=True, array_type=vtk.VTK_FLOAT)
+    normals.SetName("Normals")
+    poly.GetPointData().SetNormals(normals)
+    if mesh.labels is not None:
+        labels = nps.numpy_to_vtk(mesh.labels, deep=True, array_type=vtk.VTK_INT)
+        labels.SetName("component")
+        poly.GetCellData().AddArray(labels)
+    return poly
+
+
+def write_vtp(path: str | os.PathLike, mesh: SurfaceMesh) -> dict:
+    """XML PolyData of the mesh. Returns the manifest entry."""
+    path = Path(path)
+    poly = mesh_polydata(mesh)
+    poly.GetFieldData().AddArray(_field("isovalue", [mesh.isovalue]))
+    _write(vtk.vtkXMLPolyDataWriter(), poly, path)
+    return {"path": path.name, "kind": "vtp", "source": mesh.source, "points": len(mesh.points),
+            "triangles": len(mesh.triangles)}
+
+
+def write_ply(path: str | os.PathLike, mesh: SurfaceMesh) -> dict:
+    """Binary PLY (vertices, normals, triangles) for Blender."""
+    path = Path(path)
+    writer = vtk.vtkPLYWriter()
+    writer.SetFileTypeToBinary()
+    writer.SetArrayName("")  # no colours: Blender reads positions, normals and faces
+    _write(writer, mesh_polydata(mesh), path)
+    return {"path": path.name, "kind": "ply", "points": len(mesh.points), "triangles": len(mesh.triangles)}
+
+
+def write_obj(path: str | os.PathLike, mesh: SurfaceMesh) -> dict:
+    """Wavefront OBJ (vertices, normals, triangles), Y is not swapped: world axes as in the .vdb."""
+    path = Path(path)
+    _write(vtk.vtkOBJWriter(), mesh_polydata(mesh), path)
+    return {"path": path.name, "kind": "obj", "points": len(mesh.points), "triangles": len(mesh.triangles)}
+
+
+# --- .vtu of the active voxels ----------------------------------------------------------------
+def union_active(samplers: Iterable[GridSampler]) -> np.ndarray:
+    """Sorted unique ijk (N,3) of the voxels active in any of the sampled grids."""
+    parts = [s.active_ijk for s in samplers]
+    ijk = np.concatenate(parts) if parts else np.zeros((0, 3), np.int64)
+    _, first = np.unique(pack_keys(ijk), return_index=True)
+    return ijk[first]
+
+
+def hex_cells(ijk: np.ndarray, voxel_size: float) -> vtk.vtkUnstructuredGrid:
+    """Unstructured grid with one hexahedron per voxel (shared corner points)."""
+    corners = (ijk[:, None, :] + _HEX[None]).reshape(-1, 3)
+    keys, inverse = np.unique(pack_keys(corners), return_inverse=True)
+    uniq = np.empty((len(keys), 3), np.int64)
+    uniq[inverse] = corners
+    ug = vtk.vtkUnstructuredGrid()
+    pts = vtk.vtkPoints()
+    pts.SetData(nps.numpy_to_vtk(((uniq - 0.5) * voxel_size).astype(np.float32), deep=True))
+    ug.SetPoints(pts)
+    cells = vtk.vtkCellArray()
+    cells.SetData(
+        nps.numpy_to_vtk(np.arange(0, 8 * len(ijk) + 1, 8, dtype=np.int64), deep=True,
+                         array_type=vtk.VTK_ID_TYPE),
+        nps.numpy_to_vtk(inverse.astype(np.int64).reshape(-1), deep=True, array_type=vtk.VTK_ID_TYPE),
+    )
+    ug.SetCells(vtk.VTK_HEXAHEDRON, cells)
+    return ug
+
+
+def write_vtu(
+    path: str | os.PathLike, grids: Grids, voxel_size: float, max_cells: int | None = None
+) -> dict:
+    """Active voxels (union over grids) as hexahedra; every grid's value is cell data.
+
+    Also an ``active_<name>`` (0/1) cell array per grid, since the union holds voxels that are
+    inactive in some grids. ValueError when more than ``max_cells`` voxels would be written.
+    """
+    path = Path(path)
+    largest = max((int(g.activeVoxelCount()) for g in grids.values()), default=0)
+    if max_cells is not None and largest > max_cells:
+        raise ValueError(f"{path.name}: {largest} active voxels exceed max_cells={max_cells}")
+    samplers = {name: GridSampler(grid) for name, grid in grids.items()}
+    ijk = union_active(samplers.values())
+    if len(ijk) == 0:
+        raise ValueError(f"{path.name}: no grid has active voxels, nothing to write")
+    if max_cells is not None and len(ijk) > max_cells:
+        raise ValueError(f"{path.name}: {len(ijk)} active voxels exceed max_cells={max_cells}")
+    ug = hex_cells(ijk, voxel_size)
+    for name, sampler in samplers.items():
+        values, active = sampler.sample(ijk)
+        arr = nps.numpy_to_vtk(np.ascontiguousarray(values), deep=True, array_type=vtk.VTK_FLOAT)
+        arr.SetName(name)
+        ug.GetCellData().AddArray(arr)
+        flag = nps.numpy_to_vtk(active.astype(np.uint8), deep=True, array_type=vtk.VTK_UNSIGNED_CHAR)
+        flag.SetName(f"active_{name}")
+        ug.GetCellData().AddArray(flag)
+    ug.GetFieldData().AddArray(_field("voxel_size", [voxel_size]))
+    _write(vtk.vtkXMLUnstructuredGridWriter(), ug, path)
+    return {"path": path.name, "kind": "vtu", "cells": len(ijk)}
+
+
+# --- .pvd collections -------------------------------------------------------------------------
+def write_pvd(path: str | os.PathLike, frames: Iterable[tuple[float, str | os.PathLike]]) -> dict:
+    """ParaView collection of (time, file) frames; file paths are stored relative to the .pvd."""
+    path = Path(path)
+    root = ET.Element("VTKFile", type="Collection", version="0.1", byte_order="LittleEndian")
+    coll = ET.SubElement(root, "Collection")
+    count = 0
+    for time, file in frames:
+        rel = Path(file)
+        if rel.is_absolute():
+            rel = Path(os.path.relpath(rel.resolve(), path.parent.resolve()))
+        ET.SubElement(coll, "DataSet", timestep=repr(float(time)), group="", part="0",
+                      file=rel.as_posix())
+        count += 1
+    ET.indent(root)
+    with atomic_output(path) as tmp:
+        ET.ElementTree(root).write(tmp, encoding="utf-8", xml_declaration=True)
+    return {"path": path.name, "kind": "pvd", "frames": count}

@@ -1,0 +1,336 @@
+"""Preview images (matplotlib, Agg): centre slices of every grid and a shaded surface rendering.
+
+Each grid gets ``previews/slices_<name>.png``: three slices through the centre of the active bounding
+box (normal to x, y and z), in world units, with isolines and the zero contour in black, the
+way the papers draw fields. Signed fields use a diverging colour map centred at 0; component
+labels a qualitative one (0 left white); Vec3S grids (colours) are drawn as RGB. The surface of
+the solid is rendered shaded in ``previews/surface_mesh.png``.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+import numpy as np
+import vtk
+from vtk.util import numpy_support as nps
+
+from pipeline.vdbio import atomic_output
+from pipeline.vtkio import (
+    SurfaceMesh,
+    default_isovalue,
+    extract_surface,
+    is_vector,
+    mesh_polydata,
+    pick_surface_source,
+    read_dense,
+    triangle_labels,
+    union_active_bbox,
+)
+
+matplotlib.use("Agg")
+with warnings.catch_warnings():  # a system matplotlib's mpl_toolkits may shadow Axes3D; not used here
+    warnings.filterwarnings("ignore", message="Unable to import Axes3D")
+    from matplotlib import colors as mcolors
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.collections import LineCollection, PolyCollection
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch
+
+AXES = "xyz"
+MAX_PIXELS = 600  # longest side of a slice image before it is strided
+PAD = 2  # voxels around the active bounding box
+VIEW_AZIM, VIEW_ELEV = -60.0, 25.0  # degrees, as matplotlib's 3D default view
+MAX_FACES = 20_000
+SURFACE_PNG = "surface_mesh.png"
+
+
+@dataclass
+class Slice:
+    """A 2D slab: values[h, v] with world coordinates of the horizontal/vertical axes."""
+
+    values: np.ndarray
+    h: np.ndarray
+    v: np.ndarray
+    axis: int
+    position: float
+
+    @property
+    def labels(self) -> tuple[str, str]:
+        h, v = (a for n, a in enumerate(AXES) if n != self.axis)
+        return h, v
+
+    @property
+    def extent(self) -> list[float]:
+        dh = (self.h[1] - self.h[0]) / 2 if len(self.h) > 1 else 0.5
+        dv = (self.v[1] - self.v[0]) / 2 if len(self.v) > 1 else 0.5
+        return [self.h[0] - dh, self.h[-1] + dh, self.v[0] - dv, self.v[-1] + dv]
+
+
+def centre_slices(grid: Any, lo: np.ndarray, hi: np.ndarray, voxel_size: float) -> list[Slice]:
+    """Slices through the box centre normal to x, y, z, read with ``copyToArray``."""
+    centre = (lo + hi) // 2
+    stride = max(1, int(np.ceil((hi - lo + 1).max() / MAX_PIXELS)))
+    out = []
+    for axis in range(3):
+        start, shape = lo.copy(), hi - lo + 1
+        start[axis], shape[axis] = centre[axis], 1
+        plane = np.take(read_dense(grid, start, shape), 0, axis=axis)[::stride, ::stride]
+        h_ax, v_ax = (a for a in range(3) if a != axis)
+        h = (lo[h_ax] + stride * np.arange(plane.shape[0])) * voxel_size
+        v = (lo[v_ax] + stride * np.arange(plane.shape[1])) * voxel_size
+        out.append(Slice(plane, h, v, axis, float(centre[axis] * voxel_size)))
+    return out
+
+
+def _kind(name: str, grid: Any, slices: list[Slice]) -> str:
+    if is_vector(grid):
+        return "rgb"
+    if name == "component":
+        return "labels"
+    lo = min(float(s.values.min()) for s in slices)
+    hi = max(float(s.values.max()) for s in slices)
+    return "signed" if lo < 0.0 < hi else "sequential"
+
+
+def _label_cmap(n: int) -> tuple[mcolors.Colormap, mcolors.Normalize]:
+    base = matplotlib.colormaps["tab10" if n <= 10 else "tab20"]
+    cmap = mcolors.ListedColormap([base(i % base.N) for i in range(max(n, 1))])
+    cmap.set_bad("white")
+    return cmap, mcolors.BoundaryNorm(np.arange(0.5, max(n, 1) + 1.5), cmap.N)
+
+
+def _norm_cmap(kind: str, slices: list[Slice]) -> tuple[mcolors.Colormap | str, mcolors.Normalize]:
+    values = np.concatenate([s.values.ravel() for s in slices])
+    if kind == "labels":
+        return _label_cmap(int(np.rint(values.max())))
+    if kind == "signed":
+        m = float(np.abs(values).max())
+        return "RdBu_r", mcolors.Normalize(-m, m)
+    lo, hi = float(values.min()), float(values.max())
+    return "viridis", mcolors.Normalize(lo, hi if hi > lo else lo + 1.0)
+
+
+def _draw_contours(ax: Any, sl: Slice, kind: str, norm: mcolors.Normalize, ref: Slice | None,
+                   ref_iso: float) -> None:
+    """Grey isolines of the field, its zero contour black; else the reference surface in black."""
+    H, V = np.meshgrid(sl.h, sl.v, indexing="ij")
+    if kind in ("signed", "sequential") and min(sl.values.shape) > 1:
+        levels = np.linspace(norm.vmin, norm.vmax, 13)[1:-1]
+        levels = levels[np.abs(levels) > 1e-9 * max(abs(norm.vmin), abs(norm.vmax))]
+        ax.contour(H, V, sl.values, levels=levels, colors="0.35", linewidths=0.5, alpha=0.7)
+    if kind == "signed" and sl.values.min() < 0 < sl.values.max():
+        ax.contour(H, V, sl.values, levels=[0.0], colors="black", linewidths=1.6)
+    elif ref is not None and ref.values.min() < ref_iso < ref.values.max():
+        ax.contour(H, V, ref.values, levels=[ref_iso], colors="black", linewidths=1.2)
+
+
+def _draw_slice(ax: Any, sl: Slice, kind: str, cmap: Any, norm: mcolors.Normalize) -> Any:
+    if kind == "rgb":
+        rgb = np.clip(np.transpose(sl.values, (1, 0, 2)), 0.0, 1.0)
+        return ax.imshow(rgb, origin="lower", extent=sl.extent, interpolation="nearest")
+    data = sl.values.T
+    if kind == "labels":
+        data = np.ma.masked_less_equal(np.rint(data), 0)
+    return ax.imshow(data, origin="lower", extent=sl.extent, cmap=cmap, norm=norm,
+                     interpolation="nearest" if kind == "labels" else "bilinear")
+
+
+def _save(fig: Figure, path: Path, dpi: int) -> None:
+    FigureCanvasAgg(fig)
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png", facecolor="white")
+
+
+def slice_figure(name: str, grid: Any, slices: list[Slice], ref: list[Slice] | None, ref_iso: float,
+                 ) -> Figure:
+    """Three slice panels of one grid with a shared colour bar."""
+    kind = _kind(name, grid, slices)
+    cmap, norm = _norm_cmap(kind, slices) if kind != "rgb" else (None, mcolors.Normalize())
+    fig = Figure(figsize=(15, 5.2), layout="constrained")
+    axes = fig.subplots(1, 3)
+    image = None
+    for n, (ax, sl) in enumerate(zip(axes, slices, strict=True)):
+        image = _draw_slice(ax, sl, kind, cmap, norm)
+        _draw_contours(ax, sl, kind, norm, ref[n] if ref else None, ref_iso)
+        h, v = sl.labels
+        ax.set_xlabel(f"{h} (world units)")
+        ax.set_ylabel(f"{v} (world units)")
+        ax.set_title(f"{AXES[sl.axis]} = {sl.position:.4g}")
+        ax.set_aspect("equal")
+    if kind != "rgb":
+        bar = fig.colorbar(image, ax=list(axes), shrink=0.9, label=_bar_label(name, kind))
+        if kind == "labels" and norm.vmax <= 21:
+            bar.set_ticks(np.arange(1, int(norm.vmax - 0.5) + 1))
+    fig.suptitle(f"{name}  ({grid.gridClass}, {grid.valueTypeName}): centre slices, "
+                 "black = zero level / surface")
+    return fig
+
+
+def _bar_label(name: str, kind: str) -> str:
+    return {"labels": f"{name} label", "signed": f"{name} (diverging, centred at 0)"}.get(kind, name)
+
+
+def write_slice_previews(out_dir: str | os.PathLike, grids: Mapping[str, Any], voxel_size: float,
+                         dpi: int = 100) -> list[Path]:
+    """``<out_dir>/slices_<name>.png`` for every grid; returns the paths written."""
+    box = union_active_bbox(grids.values())
+    if box is None:
+        return []
+    lo, hi = box[0] - PAD, box[1] + PAD
+    ref_name = _reference(grids)
+    ref = centre_slices(grids[ref_name], lo, hi, voxel_size) if ref_name else None
+    ref_iso = default_isovalue(ref_name, grids[ref_name]) if ref_name else 0.0
+    paths = []
+    for name, grid in grids.items():
+        fig = slice_figure(name, grid, centre_slices(grid, lo, hi, voxel_size), ref, ref_iso)
+        path = Path(out_dir) / f"slices_{name}.png"
+        _save(fig, path, dpi)
+        paths.append(path)
+    return paths
+
+
+def _reference(grids: Mapping[str, Any]) -> str | None:
+    try:
+        return pick_surface_source(grids)
+    except ValueError:
+        return None
+
+
+# --- surface rendering ------------------------------------------------------------------------
+def decimate(mesh: SurfaceMesh, max_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """(points, triangles) with at most about ``max_faces`` triangles (VTK quadric clustering)."""
+    if len(mesh.triangles) <= max_faces:
+        return mesh.points, mesh.triangles
+    clus = vtk.vtkQuadricClustering()
+    divisions = int(np.sqrt(max_faces / 2.0))
+    clus.SetNumberOfDivisions(divisions, divisions, divisions)
+    clus.SetInputData(mesh_polydata(mesh))
+    clus.Update()
+    poly = clus.GetOutput()
+    points = nps.vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float32)
+    conn = nps.vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3).astype(np.int64)
+    return points, conn
+
+
+@dataclass
+class View:
+    """Orthographic camera: screen axes ``right``/``up``, ``eye`` points from the scene to the viewer."""
+
+    right: np.ndarray
+    up: np.ndarray
+    eye: np.ndarray
+
+    @classmethod
+    def from_angles(cls, azim: float = VIEW_AZIM, elev: float = VIEW_ELEV) -> View:
+        a, e = np.radians(azim), np.radians(elev)
+        eye = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        right = np.array([-np.sin(a), np.cos(a), 0.0])
+        return cls(right, np.cross(eye, right), eye)
+
+    def project(self, p: np.ndarray) -> np.ndarray:
+        return np.stack([p @ self.right, p @ self.up], axis=-1)
+
+    @property
+    def light(self) -> np.ndarray:
+        v = 0.5 * self.right + 0.6 * self.up + self.eye
+        return v / np.linalg.norm(v)
+
+
+def _face_colours(normals: np.ndarray, labels: np.ndarray | None, light: np.ndarray) -> np.ndarray:
+    shade = 0.25 + 0.75 * np.clip(normals @ light, 0.0, 1.0)
+    if labels is None:
+        base = np.tile(mcolors.to_rgb("#c9a66b"), (len(normals), 1))
+    else:
+        cmap, _ = _label_cmap(int(max(labels.max(), 1)))
+        base = np.array([cmap((max(int(k), 1) - 1) % cmap.N)[:3] for k in labels]).reshape(-1, 3)
+    return np.column_stack([base * shade[:, None], np.ones(len(normals))])
+
+
+def _visible_faces(points: np.ndarray, tris: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray]:
+    """Front-facing triangles sorted back to front (painter's algorithm), and their unit normals."""
+    p = points[tris].astype(np.float64)
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    front = np.flatnonzero(n @ view.eye > 0.0)
+    order = front[np.argsort(p[front].mean(axis=1) @ view.eye)]
+    return order, n[order]
+
+
+def _draw_frame(ax: Any, lo: np.ndarray, hi: np.ndarray, view: View) -> None:
+    """The bounding box as a wireframe, its corner coordinates, and an x/y/z axis triad."""
+    corners = np.array([[hi[0] if i else lo[0], hi[1] if j else lo[1], hi[2] if k else lo[2]]
+                        for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    edges = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
+    xy = view.project(corners)
+    ax.add_collection(LineCollection([xy[[a, b]] for a, b in edges], colors="0.6", linewidths=0.6,
+                                     zorder=0))
+    for idx in (0, 7):
+        c = corners[idx]
+        ax.annotate(f"({c[0]:.3g}, {c[1]:.3g}, {c[2]:.3g})", xy[idx], fontsize=8, color="0.3",
+                    ha="right" if idx == 0 else "left")
+    size = 0.12 * float(np.max(hi - lo))
+    origin = xy.min(axis=0) - 0.05 * size
+    for axis, colour in zip(AXES, ("tab:red", "tab:green", "tab:blue"), strict=True):
+        d = view.project(np.eye(3)[AXES.index(axis)]) * size
+        ax.annotate("", origin + d, origin, arrowprops={"arrowstyle": "->", "color": colour, "lw": 1.5})
+        ax.text(*(origin + 1.15 * d), axis, color=colour, fontsize=10, fontweight="bold")
+
+
+def render_surface(path: str | os.PathLike, mesh: SurfaceMesh, component: Any | None = None,
+                   voxel_size: float | None = None, max_faces: int = MAX_FACES, dpi: int = 100,
+                   view: View | None = None) -> Path:
+    """Shaded orthographic rendering of ``mesh`` (coloured by label when ``component`` is given).
+
+    Drawn as a 2D painter's-algorithm PolyCollection from a fixed 3D view, with the bounding box
+    and an axis triad; this keeps it independent of mpl_toolkits, which a system matplotlib can
+    shadow in a --system-site-packages environment.
+    """
+    view = view or View.from_angles()
+    points, tris = decimate(mesh, max_faces)
+    labels = None
+    if component is not None and voxel_size and len(tris):
+        labels = triangle_labels(component, points, tris, voxel_size)
+    order, normals = _visible_faces(points, tris, view)
+    fig = Figure(figsize=(8, 7), layout="constrained")
+    ax = fig.add_subplot()
+    colours = _face_colours(normals, None if labels is None else labels[order], view.light)
+    ax.add_collection(PolyCollection(view.project(points[tris[order]]), facecolors=colours,
+                                     edgecolors=colours, linewidths=0.3))  # edges close AA seams
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    _draw_frame(ax, lo, hi, view)
+    ax.autoscale_view()
+    ax.set_aspect("equal")
+    ax.set_axis_off()
+    if labels is not None:
+        ids = sorted({int(k) for k in labels if k > 0})
+        cmap, _ = _label_cmap(max(ids, default=1))
+        ax.legend(handles=[Patch(color=cmap((k - 1) % cmap.N), label=f"component {k}") for k in ids[:20]],
+                  loc="upper right")
+    ax.set_title(f"surface of '{mesh.source}' at {mesh.isovalue:g}: {len(mesh.triangles)} triangles"
+                 f"{' (preview decimated)' if len(tris) < len(mesh.triangles) else ''}")
+    path = Path(path)
+    _save(fig, path, dpi)
+    return path
+
+
+def write_previews(out_dir: str | os.PathLike, grids: Mapping[str, Any], voxel_size: float,
+                   mesh: SurfaceMesh | None = None, dpi: int = 100) -> list[Path]:
+    """All previews into ``out_dir`` (``<run>/previews``): slices_<grid>.png each, surface_mesh.png.
+
+    ``mesh`` reuses the mesh already extracted for the .vtp; otherwise one is extracted here when a
+    surface-like grid exists.
+    """
+    paths = write_slice_previews(out_dir, grids, voxel_size, dpi)
+    if mesh is None and _reference(grids):
+        mesh = extract_surface(grids, voxel_size)
+    if mesh is not None and len(mesh.triangles):
+        paths.append(render_surface(Path(out_dir) / SURFACE_PNG, mesh, grids.get("component"),
+                                    voxel_size, dpi=dpi))
+    return paths

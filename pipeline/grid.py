@@ -122,7 +122,7 @@ def frep_to_vdb(blocks: BlockGrid, inside_boxes: np.ndarray, name: str = "frep")
     bound proved inside are then filled explicitly, so the result does not depend on the
     flood fill near the domain's clip faces.
     """
-    bg = float(blocks.background)
+    bg = abs(float(blocks.background))
     grid = vdb.FloatGrid(bg)
     grid.name = name
     grid.transform = linear_transform(blocks.voxel_size)

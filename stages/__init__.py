@@ -1,1 +1,12 @@
-"""Pipeline stages: each maps config parameters onto pipeline library calls."""
+"""Pipeline stages: one small module per stage mapping config parameters onto library calls.
+
+Each module has ``Params`` (pydantic, unknown keys forbidden), optional ``REQUIRES`` (stages
+that must run before it) and ``run(ctx, params) -> dict`` (stats for the manifest).
+"""
+
+from stages import export, voxelise
+
+REGISTRY = {
+    "voxelise": voxelise,
+    "export": export,
+}

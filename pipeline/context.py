@@ -1,0 +1,40 @@
+"""What a running job carries from stage to stage."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pipeline.config import Job
+from pipeline.grid import BlockGrid
+
+
+@dataclass
+class JobContext:
+    job: Job
+    out_dir: Path  # <out>/<name>/
+    grids: dict[str, Any] = field(default_factory=dict)  # name -> OpenVDB grid, in write order
+    blocks: dict[str, BlockGrid] = field(default_factory=dict)  # name -> sparse blocks
+    data: dict[str, Any] = field(default_factory=dict)  # stage results other stages use
+    outputs: list[dict] = field(default_factory=list)  # {"path", "kind"} relative to out_dir
+    warnings: list[str] = field(default_factory=list)
+    manifest: dict[str, Any] = field(default_factory=dict)  # extra manifest sections
+    progress: Any = None  # callable(str) or None
+
+    @property
+    def voxel_size(self) -> float:
+        return self.job.domain.voxel_size
+
+    def add_output(self, path: Path, kind: str) -> None:
+        self.outputs.append({"path": str(Path(path).relative_to(self.out_dir)), "kind": kind})
+
+    def grid_metadata(self, stage: str, params: Any) -> dict:
+        """Metadata every grid carries: config name and hash, the stage and its parameters."""
+        return {
+            "frepvdb_config": self.job.name,
+            "frepvdb_config_sha256": self.job.config_sha256,
+            "frepvdb_stage": stage,
+            "frepvdb_params": params.model_dump_json(by_alias=True) if hasattr(params, "model_dump_json") else str(params),
+            "frepvdb_t": float(self.job.t),
+        }

@@ -1,0 +1,43 @@
+"""Errors the CLI turns into exit codes: ConfigError -> 2 (bad config or input), others -> 1."""
+
+from __future__ import annotations
+
+
+def format_path(path: tuple) -> str:
+    """('model', 'union', 1, 'sphere', 'radius') -> 'model.union[1].sphere.radius'."""
+    out = ""
+    for part in path:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + str(part)
+    return out
+
+
+class ConfigError(Exception):
+    """One or more problems in a config or an input it names, each with file, line, YAML path."""
+
+    def __init__(self, problems: list[tuple[str, int | None, tuple, str]]):
+        self.problems = problems
+        super().__init__("\n".join(self.lines()))
+
+    @classmethod
+    def one(cls, file: str, line: int | None, path: tuple, message: str) -> ConfigError:
+        return cls([(file, line, path, message)])
+
+    def lines(self) -> list[str]:
+        out = []
+        for file, line, path, message in self.problems:
+            where = f"{file}:{line}" if line else file
+            p = format_path(path)
+            out.append(f"{where} {p}: {message}" if p else f"{where}: {message}")
+        return out
+
+
+class InputError(ValueError):
+    """A problem with an input named by the config (a mesh, a .vdb) found while building the
+    model; the config loader attaches file, line and YAML path and re-raises a ConfigError."""
+
+
+class RunError(RuntimeError):
+    """A failure while running a stage (exit 1)."""

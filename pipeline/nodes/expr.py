@@ -1,0 +1,260 @@
+"""``expr``: a formula in x, y, z and t, parsed into model-tree nodes (never Python ``eval``).
+
+Grammar (recursive descent, usual precedence, ``^`` right-associative and binding tighter
+than unary minus, so -x^2 = -(x^2))::
+
+    expr   := term (('+' | '-') term)*
+    term   := unary (('*' | '/') unary)*
+    unary  := ('-' | '+') unary | power
+    power  := atom ('^' unary)?
+    atom   := number | name | name '(' expr (',' expr)* ')' | '(' expr ')'
+
+Names: x, y, z, t, pi, e. Functions: sqrt exp log sin cos abs min max (min/max take two or
+more arguments) and pow(a, b). The parsed nodes are ordinary nodes with a ``field`` method, so
+formulas get evaluation and affine bounds from the same machinery as every other node.
+Constant sub-expressions are folded; a constant division by zero or a constant that is not
+finite is a parse error.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from functools import reduce
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from pipeline import ops
+from pipeline.nodes.base import Node, Params, register
+
+
+class FormulaError(ValueError):
+    """A formula that does not parse; ``column`` is 1-based."""
+
+    def __init__(self, message: str, column: int):
+        super().__init__(f"column {column}: {message}")
+        self.column = column
+
+
+_TOKEN = re.compile(r"\s*(?:(\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?)|([A-Za-z_]\w*)|(\S))")
+_FUNCS = {"sqrt": 1, "exp": 1, "log": 1, "sin": 1, "cos": 1, "abs": 1, "min": -2, "max": -2, "pow": 2}
+_CONSTS = {"pi": math.pi, "e": math.e}
+
+
+@dataclass
+class _Tok:
+    kind: str  # num | name | op | end
+    text: str
+    col: int
+
+
+def _tokenise(src: str) -> list[_Tok]:
+    toks, pos = [], 0
+    while pos < len(src):
+        m = _TOKEN.match(src, pos)
+        if m is None or m.end() == pos:
+            break
+        col = m.start(m.lastindex) + 1
+        kind = {1: "num", 2: "name", 3: "op"}[m.lastindex]
+        toks.append(_Tok(kind, m.group(m.lastindex), col))
+        pos = m.end()
+    toks.append(_Tok("end", "", len(src) + 1))
+    return toks
+
+
+# --- expression nodes ---------------------------------------------------------------------
+
+
+class _ExprNode(Node):
+    """Internal formula nodes: not configurable on their own, so ``Params`` is empty."""
+
+    def __init__(self, *args: Any):
+        super().__init__(Params())
+        self.args = args
+
+
+class Const(_ExprNode):
+    def field(self, x, y, z, t):
+        return self.args[0]
+
+
+class Var(_ExprNode):
+    def field(self, x, y, z, t):
+        return {"x": x, "y": y, "z": z, "t": t}[self.args[0]]
+
+
+class BinOp(_ExprNode):
+    def field(self, x, y, z, t):
+        op, a, b = self.args
+        fa, fb = a.field(x, y, z, t), b.field(x, y, z, t)
+        if op == "+":
+            return fa + fb
+        if op == "-":
+            return fa - fb
+        if op == "*":
+            return fa * fb
+        return ops.div(fa, fb)
+
+
+class Neg(_ExprNode):
+    def field(self, x, y, z, t):
+        return -self.args[0].field(x, y, z, t)
+
+
+class Pow(_ExprNode):
+    """a ^ b. A constant integer exponent is exact on any base; a constant real exponent needs
+    a >= 0; a variable exponent is exp(b log a)."""
+
+    def field(self, x, y, z, t):
+        base, expo = self.args
+        fa = base.field(x, y, z, t)
+        if isinstance(expo, Const):
+            return ops.pow_(fa, expo.args[0])
+        return ops.exp(expo.field(x, y, z, t) * ops.log(fa))
+
+
+class Func(_ExprNode):
+    _UNARY = {"sqrt": ops.sqrt, "exp": ops.exp, "log": ops.log, "sin": ops.sin, "cos": ops.cos, "abs": ops.abs_}
+
+    def field(self, x, y, z, t):
+        name, args = self.args
+        vals = [a.field(x, y, z, t) for a in args]
+        if name in self._UNARY:
+            return self._UNARY[name](vals[0])
+        if name == "min":
+            return reduce(ops.minimum, vals)
+        if name == "max":
+            return reduce(ops.maximum, vals)
+        return Pow(args[0], args[1]).field(x, y, z, t)  # pow(a, b)
+
+
+# --- parser ---------------------------------------------------------------------------------
+
+
+class _Parser:
+    def __init__(self, src: str):
+        self.toks = _tokenise(src)
+        self.i = 0
+
+    @property
+    def tok(self) -> _Tok:
+        return self.toks[self.i]
+
+    def take(self, text: str | None = None) -> _Tok:
+        tok = self.tok
+        if text is not None and tok.text != text:
+            found = tok.text or "end of formula"
+            raise FormulaError(f"expected {text!r}, found {found!r}", tok.col)
+        self.i += 1
+        return tok
+
+    def parse(self) -> Node:
+        if self.tok.kind == "end":
+            raise FormulaError("empty formula", 1)
+        node = self.expr()
+        if self.tok.kind != "end":
+            raise FormulaError(f"unexpected {self.tok.text!r}", self.tok.col)
+        return node
+
+    def expr(self) -> Node:
+        node = self.term()
+        while self.tok.text in ("+", "-"):
+            op = self.take()
+            node = _fold(BinOp(op.text, node, self.term()), op.col)
+        return node
+
+    def term(self) -> Node:
+        node = self.unary()
+        while self.tok.text in ("*", "/"):
+            op = self.take()
+            node = _fold(BinOp(op.text, node, self.unary()), op.col)
+        return node
+
+    def unary(self) -> Node:
+        if self.tok.text in ("-", "+"):
+            op = self.take()
+            inner = self.unary()
+            return inner if op.text == "+" else _fold(Neg(inner), op.col)
+        return self.power()
+
+    def power(self) -> Node:
+        node = self.atom()
+        if self.tok.text == "^":
+            op = self.take()
+            node = _fold(Pow(node, self.unary()), op.col)
+        return node
+
+    def atom(self) -> Node:
+        tok = self.take()
+        if tok.kind == "num":
+            return Const(float(tok.text))
+        if tok.text == "(":
+            node = self.expr()
+            self.take(")")
+            return node
+        if tok.kind == "name":
+            return self.name(tok)
+        found = tok.text or "end of formula"
+        raise FormulaError(f"unexpected {found!r}", tok.col)
+
+    def name(self, tok: _Tok) -> Node:
+        n = tok.text
+        if n in ("x", "y", "z", "t"):
+            return Var(n)
+        if n in _CONSTS:
+            return Const(_CONSTS[n])
+        if n not in _FUNCS:
+            known = ", ".join(["x", "y", "z", "t", *_CONSTS, *_FUNCS])
+            raise FormulaError(f"unknown name {n!r} (known: {known})", tok.col)
+        self.take("(")
+        args = [self.expr()]
+        while self.tok.text == ",":
+            self.take()
+            args.append(self.expr())
+        self.take(")")
+        want = _FUNCS[n]
+        if (want > 0 and len(args) != want) or (want < 0 and len(args) < -want):
+            need = f"{want}" if want > 0 else f"at least {-want}"
+            raise FormulaError(f"{n}() takes {need} argument(s), got {len(args)}", tok.col)
+        return _fold(Func(n, args), tok.col)
+
+
+def _fold(node: Node, col: int) -> Node:
+    """Replace a node whose arguments are all constants by its value."""
+    kids = [a for a in node.args if isinstance(a, Node)] + [
+        a for arg in node.args if isinstance(arg, list) for a in arg
+    ]
+    if not kids or not all(isinstance(k, Const) for k in kids):
+        return node
+    if isinstance(node, BinOp) and node.args[0] == "/" and node.args[2].args[0] == 0:
+        raise FormulaError("division by zero", col)
+    with np.errstate(all="ignore"):
+        val = float(np.asarray(node.field(np.zeros(1), np.zeros(1), np.zeros(1), 0.0)).reshape(-1)[0])
+    if not math.isfinite(val):
+        raise FormulaError("constant sub-expression is not a finite number", col)
+    return Const(val)
+
+
+def parse_formula(src: str) -> Node:
+    """Parse a formula into expression nodes; raises FormulaError with the column."""
+    return _Parser(src).parse()
+
+
+@register("expr")
+class Expr(Node):
+    """A formula node: ``expr: "1 - x^2 - y^2 - z^2"`` or ``expr: {formula: ...}``."""
+
+    class Params(Params):
+        formula: str = Field(min_length=1)
+
+    scalar_field = "formula"
+
+    def __init__(self, params, where=""):
+        super().__init__(params, where)
+        self.tree = parse_formula(params.formula)
+
+    def field(self, x, y, z, t):
+        return self.tree.field(x, y, z, t)

@@ -1,0 +1,120 @@
+"""Field arithmetic that works on both NumPy arrays (evaluation) and affine forms (bounds).
+
+Model nodes write their defining function once, with these functions and the ordinary
+operators; called with arrays of coordinates it evaluates the field at points, called with
+:class:`~pipeline.affine.AffineForm` coordinates it bounds the field over boxes. One formula,
+two interpretations: the bound cannot drift away from what is evaluated.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline import affine as aa
+from pipeline import rfunctions as rf
+from pipeline.affine import AffineForm
+
+Value = np.ndarray | AffineForm | float
+
+
+def is_form(*xs) -> bool:
+    return any(isinstance(x, AffineForm) for x in xs)
+
+
+def _lift(x, like: AffineForm) -> AffineForm:
+    if isinstance(x, AffineForm):
+        return x
+    c = np.broadcast_to(np.asarray(x, dtype=np.float64), like.c.shape).copy()
+    return AffineForm(c, np.zeros_like(like.g), np.zeros_like(like.e))
+
+
+def _unary(np_fn, aa_fn):
+    def fn(x):
+        return aa_fn(x) if isinstance(x, AffineForm) else np_fn(x)
+
+    fn.__name__ = np_fn.__name__ if hasattr(np_fn, "__name__") else aa_fn.__name__
+    return fn
+
+
+sqrt = _unary(np.sqrt, aa.sqrt)
+exp = _unary(np.exp, aa.exp)
+log = _unary(np.log, aa.log)
+sin = _unary(np.sin, aa.sin)
+cos = _unary(np.cos, aa.cos)
+abs_ = _unary(np.abs, aa.absolute)
+sqr = _unary(np.square, aa.sqr)
+
+
+def pow_(x, p: float):
+    """x**p for a constant exponent; real exponents need x >= 0 (use pow_(abs_(x), p))."""
+    if isinstance(x, AffineForm):
+        return aa.power(x, p)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.power(x, p)
+
+
+def minimum(a, b):
+    if is_form(a, b):
+        like = a if isinstance(a, AffineForm) else b
+        return aa.minimum(_lift(a, like), _lift(b, like))
+    return np.minimum(a, b)
+
+
+def maximum(a, b):
+    if is_form(a, b):
+        like = a if isinstance(a, AffineForm) else b
+        return aa.maximum(_lift(a, like), _lift(b, like))
+    return np.maximum(a, b)
+
+
+def div(a, b):
+    if is_form(a, b):
+        like = a if isinstance(a, AffineForm) else b
+        return _lift(a, like) / _lift(b, like)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.true_divide(a, b)
+
+
+def length(*xs):
+    """Euclidean norm of the components."""
+    s = sqr(xs[0])
+    for x in xs[1:]:
+        s = s + sqr(x)
+    return sqrt(s)
+
+
+# --- R-functions --------------------------------------------------------------------------
+
+
+def r_and(a, b, family: str = "r0", k: float = rf.SARDF_K):
+    """R-conjunction: intersection of two FRep fields (families of pipeline.rfunctions)."""
+    if not is_form(a, b):
+        return rf.r_and(a, b, family, k)
+    like = a if isinstance(a, AffineForm) else b
+    a, b = _lift(a, like), _lift(b, like)
+    if family == "min_max":
+        return aa.minimum(a, b)
+    if family == "r0":
+        return a + b - aa.sqrt(aa.sqr(a) + aa.sqr(b))
+    if family == "sardf":
+        return _sardf_and_bound(a, b, k)
+    raise ValueError(f"unknown R-function family {family!r}")
+
+
+def r_or(a, b, family: str = "r0", k: float = rf.SARDF_K):
+    """R-disjunction: union, -(-a AND -b)."""
+    return -r_and(-a, -b, family, k)
+
+
+def _sardf_and_bound(a: AffineForm, b: AffineForm, k: float) -> AffineForm:
+    """Bound of the SARDF conjunction: it lies in [min - k rho / 4, min] (rfunctions module doc).
+
+    The smoothed |u| exceeds |u| by at most k rho / 2 (at u = 0), so the conjunction
+    (f1 + f2 - smooth|u|)/2 is below min(f1, f2) by at most k rho / 4, rho <= |f1| + |f2|.
+    """
+    m = aa.minimum(a, b)
+    alo, ahi = a.interval()
+    blo, bhi = b.interval()
+    rho_hi = np.maximum(np.abs(alo), np.abs(ahi)) + np.maximum(np.abs(blo), np.abs(bhi))
+    drop = 0.25 * k * rho_hi
+    return AffineForm(m.c - 0.5 * drop, m.g, m.e + 0.5 * drop)

@@ -101,8 +101,7 @@ def _kind(name: str, grid: Any, slices: list[Slice]) -> str:
 
 def _label_cmap(n: int) -> tuple[mcolors.Colormap, mcolors.Normalize]:
     base = matplotlib.colormaps["tab10" if n <= 10 else "tab20"]
-    cmap = mcolors.ListedColormap([base(i % base.N) for i in range(max(n, 1))])
-    cmap.set_bad("white")
+    cmap = mcolors.ListedColormap([base(i % base.N) for i in range(max(n, 1))]).with_extremes(bad="white")
     return cmap, mcolors.BoundaryNorm(np.arange(0.5, max(n, 1) + 1.5), cmap.N)
 
 

@@ -280,6 +280,25 @@ def triangle_labels(
     return np.where(np.isfinite(dist.min(axis=1)), picked, 0).astype(np.int32)
 
 
+def weld(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge coincident points and drop degenerate (zero-area) triangles.
+
+    volumeToMesh emits coincident vertices and zero-area triangles where the field is exactly
+    the isovalue at a voxel centre; they would get zero normals and confuse importers.
+    """
+    if len(points) == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64)
+    uniq, inverse = np.unique(points, axis=0, return_inverse=True)
+    tris = inverse.reshape(-1)[triangles]
+    p = uniq.astype(np.float64)
+    area2 = np.linalg.norm(np.cross(p[tris[:, 1]] - p[tris[:, 0]], p[tris[:, 2]] - p[tris[:, 0]]), axis=1)
+    tris = tris[area2 > 0.0]
+    used = np.unique(tris)
+    remap = np.full(len(uniq), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return np.ascontiguousarray(uniq[used], dtype=np.float32), np.ascontiguousarray(remap[tris])
+
+
 def extract_surface(
     grids: Grids,
     voxel_size: float,
@@ -303,8 +322,7 @@ def extract_surface(
     )
     if _needs_flip(name, grid):
         triangles = triangles[:, ::-1]
-    triangles = np.ascontiguousarray(triangles)
-    points = np.ascontiguousarray(points, dtype=np.float32)
+    points, triangles = weld(np.asarray(points, dtype=np.float32), triangles)
     labels = None
     if "component" in grids and len(triangles):
         labels = triangle_labels(grids["component"], points, triangles, voxel_size)

@@ -1,0 +1,391 @@
+"""Round trips of every export file: .vdb through pyopenvdb, VTK files through VTK's readers,
+previews as images, report.html as text, `describe_vdb` output.
+
+The scene: two spheres on a 49^3 voxel domain, built directly with pyopenvdb, with every grid
+the pipeline writes (frep, surface, hfrep, density, component, color), so expected values are
+known analytically. ``sample_grids`` is also used by tests/clients.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+import vtk
+from vtk.util import numpy_support as nps
+
+from pipeline import previews, report, vtkio
+from pipeline.grid import grid_stats, linear_transform, vdb
+from pipeline.vdbinfo import describe_vdb
+from pipeline.vdbio import metadata_value, set_grid_metadata, write_vdb
+
+VOXEL = 0.05
+HALF = 24  # index domain [-HALF, HALF]^3
+SPHERES = (((-0.45, 0.0, 0.0), 0.4), ((0.5, 0.1, 0.0), 0.35))
+BAND = 3
+SPHERE_VOLUME = sum(4.0 / 3.0 * np.pi * r**3 for _, r in SPHERES)
+
+
+def sphere_fields(voxel: float = VOXEL, half: int = HALF) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distance (negative inside) to the two spheres, and the label (1, 2) of the nearer one."""
+    idx = np.arange(-half, half + 1)
+    p = np.stack(np.meshgrid(idx, idx, idx, indexing="ij"), axis=-1) * voxel
+    dists = [np.linalg.norm(p - np.array(c), axis=-1) - r for c, r in SPHERES]
+    return np.minimum(*dists), np.where(dists[0] < dists[1], 1.0, 2.0)
+
+
+def _grid(arr: np.ndarray, background, name: str, voxel: float, half: int, grid_type=vdb.FloatGrid):
+    grid = grid_type(background)
+    grid.name = name
+    grid.transform = linear_transform(voxel)
+    grid.copyFromArray(np.ascontiguousarray(arr), (-half, -half, -half))
+    return grid
+
+
+def sample_grids(voxel: float = VOXEL, half: int = HALF) -> dict:
+    """Every grid the pipeline writes, in the SPEC's conventions, for the two-sphere scene."""
+    d, label = sphere_fields(voxel, half)
+    bg = BAND * voxel
+    band = np.abs(d) < bg
+    surface = _grid(np.where(band, d, bg).astype(np.float32), bg, "surface", voxel, half)
+    surface.signedFloodFill()
+    surface.gridClass = vdb.GridClass.LEVEL_SET
+    frep = surface.deepCopy()  # FRep: negated, inactive inside +bg, outside -bg
+    frep.name = "frep"
+    vdb.ax("@frep = -@frep;", frep)
+    frep.background = -bg
+    frep.gridClass = vdb.GridClass.UNKNOWN
+    hfrep = _grid((-d).astype(np.float32), -10.0, "hfrep", voxel, half)
+    density = _grid(np.clip(0.5 - d / (2 * bg), 0.0, 1.0).astype(np.float32), 0.0, "density", voxel, half)
+    density.gridClass = vdb.GridClass.FOG_VOLUME
+    component = _grid(np.where(band, label, 0.0).astype(np.float32), 0.0, "component", voxel, half)
+    rgb = np.where((label == 1)[..., None], [1.0, 0.2, 0.1], [0.1, 0.3, 1.0])
+    rgb = np.where(band[..., None], rgb, 0.0).astype(np.float32)
+    color = _grid(rgb, (0.0, 0.0, 0.0), "color", voxel, half, vdb.Vec3SGrid)
+    return {g.name: g for g in (frep, surface, hfrep, density, component, color)}
+
+
+def sample_manifest(grids: dict, voxel: float = VOXEL) -> dict:
+    """A manifest with the SPEC's keys for the sample grids."""
+    return {
+        "name": "spheres", "config": "configs/spheres.yaml", "config_sha256": "ab" * 32,
+        "domain": {"bounds": [[-1.2] * 3, [1.2] * 3], "voxel_size": voxel},
+        "outputs": [{"path": "spheres.vdb", "kind": "vdb"}, {"path": "spheres.vti", "kind": "vti"}],
+        "grids": {n: grid_stats(g, voxel) for n, g in grids.items()},
+        "stages": [{"name": "voxelise", "seconds": 1.25, "stats": {"voxels_evaluated": 8827}},
+                   {"name": "components", "seconds": 0.5, "stats": {"count": 2}}],
+        "components": {"count": 2, "volumes": [0.268, 0.180]},
+        "quality": {"surface": {"grad_norm_mean": 0.9987, "grad_norm_p99": 1.0421}},
+        "warnings": ["hfrep: 12 voxels near the medial axis clamped"],
+    }
+
+
+@pytest.fixture(scope="module")
+def grids() -> dict:
+    return sample_grids()
+
+
+@pytest.fixture(scope="module")
+def mesh(grids: dict) -> vtkio.SurfaceMesh:
+    return vtkio.extract_surface(grids, VOXEL)
+
+
+def expected_frep(ijk: tuple[int, int, int]) -> float:
+    p = np.array(ijk) * VOXEL
+    return -min(np.linalg.norm(p - np.array(c)) - r for c, r in SPHERES)
+
+
+def band_voxel() -> tuple[int, int, int]:
+    """A voxel in the narrow band of sphere 1: x = -0.75 is 0.1 inside its surface (bg = 0.15)."""
+    return (-15, 0, 0)
+
+
+def _read(reader_cls, path: Path):
+    reader = reader_cls()
+    reader.SetFileName(str(path))
+    reader.Update()
+    return reader.GetOutput()
+
+
+def _no_temp_files(folder: Path) -> bool:
+    return not [p for p in folder.iterdir() if p.name.startswith(".")]
+
+
+# --- .vdb ------------------------------------------------------------------------------------
+def test_vdb_round_trip_names_classes_values_metadata(grids: dict, tmp_path: Path) -> None:
+    for g in grids.values():
+        set_grid_metadata(g, {"config_name": "spheres", "config_hash": "ab" * 32,
+                              "stage": {"band": 3, "rfunc": "r0"}, "bounds_min": [-1.2, -1.2, -1.2]})
+    set_grid_metadata(grids["component"], {"count": 2, "volumes": [0.268, 0.180]})
+    path = write_vdb(tmp_path / "spheres.vdb", list(grids.values()), {"config": "spheres.yaml", "n": 2})
+    read, file_meta = vdb.readAll(str(path))
+    back = {g.name: g for g in read}
+    assert sorted(back) == sorted(grids)
+    assert file_meta["config"] == "spheres.yaml" and file_meta["n"] == 2
+    assert back["surface"].gridClass == "level set"
+    assert back["density"].gridClass == "fog volume"
+    assert back["frep"].gridClass == "unknown"
+    assert back["color"].valueTypeName == "vec3s"
+    for name, g in grids.items():
+        assert back[name].activeVoxelCount() == g.activeVoxelCount()
+    ijk = band_voxel()
+    acc = back["frep"].getConstAccessor()
+    assert acc.getValue(ijk) == pytest.approx(expected_frep(ijk), abs=1e-6)
+    assert acc.isValueOn(ijk)
+    assert acc.getValue((-9, 0, 0)) == pytest.approx(BAND * VOXEL)  # centre of sphere 1: inactive +bg
+    assert not acc.isValueOn((-9, 0, 0))
+    assert acc.getValue((HALF, HALF, HALF)) == pytest.approx(-BAND * VOXEL)  # far outside: -bg
+    assert back["surface"].getConstAccessor().getValue(ijk) == pytest.approx(-expected_frep(ijk), abs=1e-6)
+    assert back["component"].getConstAccessor().getValue(ijk) == 1.0
+    assert back["color"].getConstAccessor().getValue(ijk) == pytest.approx((1.0, 0.2, 0.1))
+    meta = back["component"].metadata
+    assert meta["count"] == 2 and json.loads(meta["volumes"]) == [0.268, 0.18]
+    assert json.loads(back["frep"]["stage"]) == {"band": 3, "rfunc": "r0"}
+    assert back["frep"]["bounds_min"] == pytest.approx((-1.2, -1.2, -1.2))
+    assert _no_temp_files(tmp_path)
+
+
+def test_vdb_half_float_per_grid(grids: dict, tmp_path: Path) -> None:
+    path = write_vdb(tmp_path / "h.vdb", [grids["surface"], grids["frep"]], {}, half_float={"surface"})
+    assert not grids["surface"].saveFloatAsHalf  # the caller's grid is left as it was
+    meta = {m["name"]: m for m in vdb.readAllGridMetadata(str(path))}
+    assert meta["surface"]["is_saved_as_half_float"] is True
+    assert meta["frep"]["is_saved_as_half_float"] is False
+    back = vdb.read(str(path), "surface").getConstAccessor()
+    ijk = band_voxel()
+    assert back.getValue(ijk) == pytest.approx(-expected_frep(ijk), rel=1e-3)  # half: 11-bit mantissa
+
+
+def test_vdb_failed_write_leaves_previous_file(grids: dict, tmp_path: Path) -> None:
+    path = write_vdb(tmp_path / "c.vdb", [grids["component"]])
+    before = path.read_bytes()
+    big = grids["component"].deepCopy()
+    big.fill((0, 0, 0), (0, 0, 0), 5000.0, True)
+    with pytest.raises(ValueError, match="half precision"):
+        write_vdb(path, [big], half_float=True)
+    assert path.read_bytes() == before
+    assert _no_temp_files(tmp_path)
+    with pytest.raises(ValueError, match="unique"):
+        write_vdb(tmp_path / "d.vdb", [grids["frep"], grids["frep"]])
+    assert not (tmp_path / "d.vdb").exists()
+
+
+def test_metadata_value_conversions() -> None:
+    assert metadata_value(np.float32(1.5)) == 1.5 and isinstance(metadata_value(np.int64(3)), int)
+    assert metadata_value((1, 2, 3)) == (1, 2, 3)
+    assert metadata_value(np.array([0.5, 1.0, 2.0])) == (0.5, 1.0, 2.0)
+    assert json.loads(metadata_value({"a": (1, 2), "b": None})) == {"a": [1, 2], "b": None}
+    assert json.loads(metadata_value([1, 2])) == [1, 2]
+    assert metadata_value(2**70) == str(2**70)
+    assert metadata_value(True) is True
+
+
+def test_describe_vdb(grids: dict, tmp_path: Path) -> None:
+    set_grid_metadata(grids["surface"], {"config_name": "spheres"})
+    path = write_vdb(tmp_path / "s.vdb", [grids["surface"], grids["color"]], {"config": "s.yaml"})
+    text = describe_vdb(path)
+    assert "grid 'surface'" in text and "grid 'color'" in text
+    assert "level set" in text and "vec3s" in text
+    n = grids["surface"].activeVoxelCount()
+    assert re.search(rf"active voxels: {n}\b", text)
+    assert "voxel size:    (0.05, 0.05, 0.05)" in text
+    lo, hi = grids["surface"].evalActiveVoxelBoundingBox()
+    assert f"index bbox:    ({lo[0]}, {lo[1]}, {lo[2]}) .. ({hi[0]}, {hi[1]}, {hi[2]})" in text
+    assert f"world bbox:    ({lo[0] * VOXEL:.6g}," in text
+    vmin, _ = grids["surface"].evalMinMax()
+    assert f"active min:    {vmin:.6g}" in text
+    assert "config_name: spheres" in text and "config: s.yaml" in text
+    with pytest.raises(ValueError, match="no such file"):
+        describe_vdb(tmp_path / "missing.vdb")
+    bad = tmp_path / "bad.vdb"
+    bad.write_bytes(b"not a vdb at all")
+    with pytest.raises(ValueError, match="not a readable OpenVDB file"):
+        describe_vdb(bad)
+
+
+# --- .vti ------------------------------------------------------------------------------------
+def test_vti_arrays_extent_and_values(grids: dict, tmp_path: Path) -> None:
+    info = vtkio.write_vti(tmp_path / "s.vti", grids, VOXEL)
+    image = _read(vtk.vtkXMLImageDataReader, tmp_path / "s.vti")
+    pd = image.GetPointData()
+    assert sorted(pd.GetArrayName(i) for i in range(pd.GetNumberOfArrays())) == sorted(grids)
+    assert info["stride"] == 1
+    assert image.GetDimensions() == (2 * HALF + 1,) * 3  # hfrep is active over the whole domain
+    assert image.GetOrigin() == pytest.approx((-HALF * VOXEL,) * 3)
+    assert image.GetSpacing() == pytest.approx((VOXEL,) * 3)
+    assert pd.GetArray("color").GetNumberOfComponents() == 3
+    for ijk in [band_voxel(), (10, 2, 0), (0, 0, 0), (-20, 17, 5)]:
+        pid = image.FindPoint(*(np.array(ijk) * VOXEL))
+        assert image.GetPoint(pid) == pytest.approx(tuple(np.array(ijk) * VOXEL))
+        for name, grid in grids.items():
+            want = grid.getConstAccessor().getValue(ijk)
+            assert pd.GetArray(name).GetTuple(pid) == pytest.approx(np.atleast_1d(want), abs=1e-7)
+    pid = image.FindPoint(*(np.array(band_voxel()) * VOXEL))
+    assert pd.GetArray("hfrep").GetValue(pid) == pytest.approx(expected_frep(band_voxel()), abs=1e-6)
+
+
+def test_vti_stride_keeps_world_positions(grids: dict, tmp_path: Path) -> None:
+    info = vtkio.write_vti(tmp_path / "s.vti", grids, VOXEL, max_points=20_000)
+    image = _read(vtk.vtkXMLImageDataReader, tmp_path / "s.vti")
+    assert info["stride"] == 2 and image.GetNumberOfPoints() <= 20_000
+    assert image.GetDimensions() == (25, 25, 25)
+    assert image.GetSpacing() == pytest.approx((2 * VOXEL,) * 3)
+    frep = nps.vtk_to_numpy(image.GetPointData().GetArray("frep")).reshape(25, 25, 25)  # [k, j, i]
+    acc = grids["frep"].getConstAccessor()
+    for m in [(0, 0, 0), (7, 12, 12), (24, 3, 19)]:
+        ijk = tuple(-HALF + 2 * c for c in m)
+        assert image.GetPoint(image.ComputePointId(m)) == pytest.approx(tuple(np.array(ijk) * VOXEL))
+        assert frep[m[2], m[1], m[0]] == pytest.approx(acc.getValue(ijk))
+    assert float(image.GetFieldData().GetArray("stride").GetValue(0)) == 2.0
+
+
+@pytest.mark.parametrize("shape,limit", [((49, 49, 49), 20_000), ((1000, 10, 10), 999), ((7, 7, 7), 343)])
+def test_vti_stride_is_smallest_that_fits(shape: tuple, limit: int) -> None:
+    s = vtkio.vti_stride(shape, limit)
+    assert np.prod([-(-n // s) for n in shape]) <= limit
+    assert s == 1 or np.prod([-(-n // (s - 1)) for n in shape]) > limit
+
+
+# --- surface mesh ----------------------------------------------------------------------------
+@pytest.mark.parametrize("source", ["surface", "frep", "hfrep", "density"])
+def test_mesh_is_outward_and_encloses_the_spheres(grids: dict, source: str) -> None:
+    m = vtkio.extract_surface(grids, VOXEL, source=source)
+    assert m.signed_volume == pytest.approx(SPHERE_VOLUME, rel=0.03)
+    centres = np.array([SPHERES[0][0] if p[0] < 0 else SPHERES[1][0] for p in m.points])
+    outward = np.einsum("ij,ij->i", m.normals, m.points - centres)
+    assert (outward > 0).mean() > 0.999
+    radius = np.linalg.norm(m.points - centres, axis=1)
+    expect = np.where(m.points[:, 0] < 0, SPHERES[0][1], SPHERES[1][1])
+    assert np.abs(radius - expect).max() < 0.5 * VOXEL
+
+
+def test_vtp_normals_and_component_labels(mesh: vtkio.SurfaceMesh, tmp_path: Path) -> None:
+    vtkio.write_vtp(tmp_path / "s.vtp", mesh)
+    poly = _read(vtk.vtkXMLPolyDataReader, tmp_path / "s.vtp")
+    assert poly.GetNumberOfPoints() == len(mesh.points) and poly.GetNumberOfPolys() == len(mesh.triangles)
+    normals = nps.vtk_to_numpy(poly.GetPointData().GetNormals())
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    labels = nps.vtk_to_numpy(poly.GetCellData().GetArray("component"))
+    centroid_x = nps.vtk_to_numpy(poly.GetPoints().GetData())[mesh.triangles].mean(axis=1)[:, 0]
+    assert set(np.unique(labels)) == {1, 2}
+    assert np.all(labels[centroid_x < -0.1] == 1) and np.all(labels[centroid_x > 0.1] == 2)
+
+
+def test_ply_and_obj_hold_the_same_mesh(mesh: vtkio.SurfaceMesh, tmp_path: Path) -> None:
+    vtkio.write_ply(tmp_path / "s.ply", mesh)
+    vtkio.write_obj(tmp_path / "s.obj", mesh)
+    for reader in (vtk.vtkPLYReader, vtk.vtkOBJReader):
+        poly = _read(reader, tmp_path / ("s.ply" if reader is vtk.vtkPLYReader else "s.obj"))
+        assert poly.GetNumberOfPoints() == len(mesh.points)
+        assert poly.GetNumberOfCells() == len(mesh.triangles)
+        pts = nps.vtk_to_numpy(poly.GetPoints().GetData())
+        assert np.allclose(pts, mesh.points, atol=1e-6)
+        cells = nps.vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3)
+        assert np.array_equal(cells, mesh.triangles)
+    assert _no_temp_files(tmp_path)
+
+
+# --- .vtu ------------------------------------------------------------------------------------
+def test_vtu_hexahedra_over_active_voxels(grids: dict, tmp_path: Path) -> None:
+    sub = {k: grids[k] for k in ("frep", "component", "color")}
+    info = vtkio.write_vtu(tmp_path / "s.vtu", sub, VOXEL)
+    ug = _read(vtk.vtkXMLUnstructuredGridReader, tmp_path / "s.vtu")
+    n = grids["frep"].activeVoxelCount()  # component and color share frep's band topology
+    assert info["cells"] == n and ug.GetNumberOfCells() == n
+    assert set(np.unique(nps.vtk_to_numpy(ug.GetCellTypes()))) == {vtk.VTK_HEXAHEDRON}
+    cd = ug.GetCellData()
+    assert {cd.GetArrayName(i) for i in range(cd.GetNumberOfArrays())} == {
+        "frep", "component", "color", "active_frep", "active_component", "active_color"}
+    assert nps.vtk_to_numpy(cd.GetArray("active_frep")).all()
+    frep = nps.vtk_to_numpy(cd.GetArray("frep"))
+    bounds = np.array([ug.GetCell(c).GetBounds() for c in range(0, n, 97)])
+    centres = np.round((bounds[:, 0::2] + bounds[:, 1::2]) / 2 / VOXEL).astype(int)
+    assert np.allclose(bounds[:, 1::2] - bounds[:, 0::2], VOXEL, atol=1e-6)
+    acc = grids["frep"].getConstAccessor()
+    for row, ijk in zip(range(0, n, 97), centres, strict=True):
+        assert frep[row] == pytest.approx(acc.getValue(tuple(int(c) for c in ijk)))
+        assert acc.isValueOn(tuple(int(c) for c in ijk))
+    volume = vtk.vtkMeshQuality()
+    volume.SetInputData(ug)
+    volume.SetHexQualityMeasureToVolume()
+    volume.Update()
+    vols = nps.vtk_to_numpy(volume.GetOutput().GetCellData().GetArray("Quality"))
+    assert np.allclose(vols, VOXEL**3, rtol=1e-4)  # correctly ordered hexahedra have +volume
+
+
+def test_vtu_union_topology_and_limit(grids: dict, tmp_path: Path) -> None:
+    sub = {k: grids[k] for k in ("frep", "density")}
+    info = vtkio.write_vtu(tmp_path / "u.vtu", sub, VOXEL)
+    ug = _read(vtk.vtkXMLUnstructuredGridReader, tmp_path / "u.vtu")
+    active = nps.vtk_to_numpy(ug.GetCellData().GetArray("active_frep")).astype(bool)
+    assert info["cells"] >= grids["density"].activeVoxelCount()
+    assert active.sum() == grids["frep"].activeVoxelCount()
+    inactive_frep = nps.vtk_to_numpy(ug.GetCellData().GetArray("frep"))[~active]
+    assert np.all(np.isclose(np.abs(inactive_frep), BAND * VOXEL))  # +-bg where frep is inactive
+    with pytest.raises(ValueError, match="max_cells"):
+        vtkio.write_vtu(tmp_path / "big.vtu", sub, VOXEL, max_cells=1000)
+    assert not (tmp_path / "big.vtu").exists()
+
+
+def test_pvd_frames_resolve(grids: dict, tmp_path: Path) -> None:
+    frames = []
+    for t in range(3):
+        vtkio.write_vti(tmp_path / f"f{t}.vti", {"frep": grids["frep"]}, VOXEL)
+        frames.append((0.5 * t, tmp_path / f"f{t}.vti" if t else f"f{t}.vti"))
+    vtkio.write_pvd(tmp_path / "series.pvd", frames)
+    root = ET.parse(tmp_path / "series.pvd").getroot()
+    sets = root.findall("./Collection/DataSet")
+    assert root.get("type") == "Collection"
+    assert [float(d.get("timestep")) for d in sets] == [0.0, 0.5, 1.0]
+    assert [d.get("file") for d in sets] == ["f0.vti", "f1.vti", "f2.vti"]
+    for d in sets:
+        image = _read(vtk.vtkXMLImageDataReader, tmp_path / d.get("file"))
+        assert image.GetPointData().GetArray("frep") is not None
+
+
+# --- previews and report ---------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def preview_paths(grids: dict, mesh: vtkio.SurfaceMesh, tmp_path_factory) -> list[Path]:
+    out = tmp_path_factory.mktemp("run") / "previews"
+    return previews.write_previews(out, grids, VOXEL, mesh=mesh)
+
+
+def test_previews_exist_sized_and_not_blank(grids: dict, preview_paths: list[Path]) -> None:
+    names = {p.name for p in preview_paths}
+    assert names == {f"slices_{n}.png" for n in grids} | {previews.SURFACE_PNG}
+    for path in preview_paths:
+        img = mpimg.imread(path)[..., :3]
+        h, w = img.shape[:2]
+        assert (w, h) == ((1500, 520) if path.name.startswith("slices_") else (800, 700))
+        assert len(np.unique(img.reshape(-1, 3), axis=0)) > 50
+        assert img.std() > 0.05
+    frep = mpimg.imread(preview_paths[0].parent / "slices_frep.png")[..., :3]
+    assert (frep.max(axis=2) < 0.1).mean() > 0.002  # the black zero contour is drawn
+    surface = mpimg.imread(preview_paths[0].parent / previews.SURFACE_PNG)[..., :3]
+    blue = (surface[..., 2] > surface[..., 0] + 0.1).mean()
+    orange = (surface[..., 0] > surface[..., 2] + 0.2).mean()
+    assert blue > 0.02 and orange > 0.02  # both components coloured
+
+
+def test_report_embeds_previews_and_tables(grids: dict, preview_paths: list[Path]) -> None:
+    manifest = sample_manifest(grids)
+    path = report.write_report(preview_paths[0].parent.parent / "report.html", manifest)
+    text = path.read_text()
+    uris = re.findall(r"src='data:image/png;base64,([A-Za-z0-9+/=]+)'", text)
+    assert len(uris) == len(preview_paths)
+    assert base64.b64decode(uris[0]) == (preview_paths[0].parent / previews.SURFACE_PNG).read_bytes()
+    for name in grids:
+        assert f"<td>{name}</td>" in text
+    assert "<td>voxelise</td>" in text and "voxels_evaluated=8827" in text
+    assert str(grids["frep"].activeVoxelCount()) in text
+    assert "count: <b>2</b>" in text and "0.268" in text
+    assert "grad_norm_p99" in text and "1.0421" in text
+    assert "12 voxels near the medial axis clamped" in text
+    assert "spheres.vti" in text and "<h2>Field quality</h2>" in text
+    assert "src='file:" not in text and "src=\"http" not in text  # self-contained

@@ -118,7 +118,7 @@ class AffineForm:
         if isinstance(other, AffineForm):
             return mul(self, other)
         k = np.asarray(other, dtype=np.float64)
-        return self._new(self.c * k, self.g * k, self.e * np.abs(k))
+        return self._new(self.c * k, self.g * k, _smul(self.e, np.abs(k)))
 
     __rmul__ = __mul__
 
@@ -137,13 +137,20 @@ class AffineForm:
 # --- non-affine operations ----------------------------------------------------------------
 
 
+def _smul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Product of non-negative magnitudes with 0 * inf = 0 (an exact zero times an unbounded
+    term contributes nothing; without this the error term would become NaN)."""
+    with np.errstate(invalid="ignore"):
+        return np.where((a == 0) | (b == 0), 0.0, a * b)
+
+
 def mul(a: AffineForm, b: AffineForm) -> AffineForm:
     """Revised AA product: diagonal terms g_ai g_bi e_i^2, e_i^2 in [0,1], go half to the centre."""
     diag = a.g * b.g
     ra, rb = a.radius, b.radius
     c = a.c * b.c + 0.5 * diag.sum(axis=0)
     g = a.c * b.g + b.c * a.g
-    e = np.abs(a.c) * b.e + np.abs(b.c) * a.e + ra * rb - 0.5 * np.abs(diag).sum(axis=0)
+    e = _smul(np.abs(a.c), b.e) + _smul(np.abs(b.c), a.e) + _smul(ra, rb) - 0.5 * np.abs(diag).sum(axis=0)
     return a._new(c, g, np.maximum(e, 0.0))
 
 
@@ -152,7 +159,7 @@ def sqr(a: AffineForm) -> AffineForm:
     g2 = a.g * a.g
     r = a.radius
     c = a.c * a.c + 0.5 * g2.sum(axis=0)
-    e = 2.0 * np.abs(a.c) * a.e + r * r - 0.5 * g2.sum(axis=0)
+    e = _smul(2.0 * np.abs(a.c), a.e) + _smul(r, r) - 0.5 * g2.sum(axis=0)
     return a._new(c, 2.0 * a.c * a.g, np.maximum(e, 0.0))
 
 
@@ -161,7 +168,7 @@ def _linear(a: AffineForm, alpha: np.ndarray, zeta: np.ndarray, delta: np.ndarra
     alpha = np.where(np.isfinite(alpha), alpha, 0.0)
     bad = ~(np.isfinite(zeta) & np.isfinite(delta))
     c = alpha * a.c + np.where(bad, 0.0, zeta)
-    e = np.abs(alpha) * a.e + np.where(bad, np.inf, np.abs(delta))
+    e = _smul(np.abs(alpha), a.e) + np.where(bad, np.inf, np.abs(delta))
     return a._new(c, alpha * a.g, e)
 
 

@@ -20,9 +20,9 @@ Pipeline of ``solve_distance``:
    inside, hfrep seed section 7) and the outside blocks that can hold a voxel closer than
    ``max_distance`` to the surface;
 3. initialisation at sub-voxel accuracy: a voxel with a sign change towards an axis
-   neighbour gets the distance to the plane through the linearly interpolated crossings
-   on each axis, ``d = 1 / sqrt(sum_a 1/d_a^2)`` (exact for a planar interface);
-   those voxels are frozen;
+   neighbour gets ``|f| / |grad f|`` (central differences of frep: the distance to the
+   tangent plane of the zero set, exact for a planar interface of any orientation),
+   capped by the linearly interpolated axis crossings; those voxels are frozen;
 4. block FIM (Numba, on a block-neighbour table: no hashing in the kernel); outside
    voxels farther than ``max_distance`` are never accepted, so the outward front stops
    there while the interior is always solved completely.
@@ -237,10 +237,12 @@ def _fim(d, state, inside, nbr, seeds, limit, tol, max_sweeps):
 def _init_interface(f, fact, d, state, nbr):
     """Freeze voxels next to a sign change with sub-voxel distances (voxel units).
 
-    Along each axis the crossing with an active neighbour of opposite sign is placed by
-    linear interpolation, ``theta = f_v / (f_v - f_n)``; the per-axis distances d_a are
-    combined as the distance to the plane with those axis intercepts,
-    ``1/d^2 = sum_a 1/d_a^2``. Returns the number of frozen voxels.
+    A voxel with an active axis neighbour of opposite sign gets ``|f| / |grad f|`` (central
+    differences of frep, one-sided where a neighbour is missing): the distance to the
+    first-order (tangent-plane) approximation of the zero set, exact for a planar
+    interface at any orientation. It is capped by the linearly interpolated crossing
+    ``theta = f_v / (f_v - f_n)`` on each axis with a sign change, since those crossings
+    lie on the surface. Returns the number of frozen voxels.
     """
     count = 0
     for b in range(f.shape[0]):
@@ -255,30 +257,45 @@ def _init_interface(f, fact, d, state, nbr):
                         state[b, i, j, k] = 1
                         count += 1
                         continue
-                    inv = 0.0
+                    cap = np.inf
+                    g2 = 0.0
                     for axis in range(3):
-                        best = np.inf
-                        for side in (-1, 1):
-                            ni, nj, nk = i, j, k
-                            if axis == 0:
-                                ni += side
-                            elif axis == 1:
-                                nj += side
-                            else:
-                                nk += side
-                            fn = _get(f, nbr, b, ni, nj, nk)
-                            if fn == np.inf or not _get_active(fact, nbr, b, ni, nj, nk):
-                                continue
-                            if (fv > 0.0) != (fn > 0.0):
-                                best = min(best, fv / (fv - fn))
-                        if best < np.inf:
-                            best = max(best, 1e-6)
-                            inv += 1.0 / (best * best)
-                    if inv > 0.0:
-                        d[b, i, j, k] = 1.0 / math.sqrt(inv)
-                        state[b, i, j, k] = 1
-                        count += 1
+                        fl, al = _axis_nb(f, fact, nbr, b, i, j, k, axis, -1)
+                        fh, ah = _axis_nb(f, fact, nbr, b, i, j, k, axis, 1)
+                        if al and (fv > 0.0) != (fl > 0.0):
+                            cap = min(cap, fv / (fv - fl))
+                        if ah and (fv > 0.0) != (fh > 0.0):
+                            cap = min(cap, fv / (fv - fh))
+                        if al and ah:
+                            g = 0.5 * (fh - fl)
+                        elif ah:
+                            g = fh - fv
+                        elif al:
+                            g = fv - fl
+                        else:
+                            g = 0.0
+                        g2 += g * g
+                    if cap == np.inf:
+                        continue
+                    dist = abs(fv) / math.sqrt(g2) if g2 > 0.0 else cap
+                    d[b, i, j, k] = min(dist, cap)
+                    state[b, i, j, k] = 1
+                    count += 1
     return count
+
+
+@njit(cache=True, inline="always")
+def _axis_nb(f, fact, nbr, b, i, j, k, axis, side):
+    """(value, active) of the neighbour one step along ``axis`` in direction ``side``."""
+    if axis == 0:
+        i += side
+    elif axis == 1:
+        j += side
+    else:
+        k += side
+    if not _get_active(fact, nbr, b, i, j, k):
+        return 0.0, False
+    return _get(f, nbr, b, i, j, k), True
 
 
 @njit(cache=True, inline="always")

@@ -1,0 +1,179 @@
+"""Field-quality measures for the manifest (approximate-distance-fields seed, 1.2 and 2.3).
+
+A distance-like field is judged by its normalisation: on regular boundary points the
+exact distance has ``|grad f| = 1`` (eq. 1, first order); a drop of ``|grad f|`` means the
+field grows too slowly ("bulging", section 1.2), and near the boundary a field normalised
+to order m deviates from the distance by ``O(delta^(m+1))`` (eq. 9). So we report
+
+- ``gradient_stats``: |grad f| by central differences on the blocks (mean, 1st and 99th
+  percentiles, share below 0.5, share within 1 % of 1);
+- ``distance_deviation``: deviation from a reference distance within a band of the boundary;
+- ``extra_zero_crossings``: sign changes of the field between neighbouring voxels that the
+  reference field (e.g. frep) does not have (HFRep step 3 must not add zeros).
+
+Every function returns a plain dict of Python numbers for ``manifest.json``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from numba import njit
+
+from pipeline.eikonal import block_neighbours
+from pipeline.grid import BlockGrid
+
+
+@njit(cache=True, inline="always")
+def _nb(vals, act, nbr, b, i, j, k, f):
+    """(value, active) of the face neighbour f (-x,+x,-y,+y,-z,+z) of voxel (b,i,j,k)."""
+    if f == 0:
+        i -= 1
+    elif f == 1:
+        i += 1
+    elif f == 2:
+        j -= 1
+    elif f == 3:
+        j += 1
+    elif f == 4:
+        k -= 1
+    else:
+        k += 1
+    if i < 0:
+        b, i = nbr[b, 0], 7
+    elif i > 7:
+        b, i = nbr[b, 1], 0
+    elif j < 0:
+        b, j = nbr[b, 2], 7
+    elif j > 7:
+        b, j = nbr[b, 3], 0
+    elif k < 0:
+        b, k = nbr[b, 4], 7
+    elif k > 7:
+        b, k = nbr[b, 5], 0
+    if b < 0:
+        return 0.0, False
+    return vals[b, i, j, k], act[b, i, j, k]
+
+
+@njit(cache=True)
+def _central_gradient(vals, act, nbr, h, grad, ok):
+    """Central-difference gradient where the voxel and its 6 neighbours are active."""
+    for b in range(vals.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    ok[b, i, j, k] = False
+                    if not act[b, i, j, k]:
+                        continue
+                    good = True
+                    for axis in range(3):
+                        lo, alo = _nb(vals, act, nbr, b, i, j, k, 2 * axis)
+                        hi, ahi = _nb(vals, act, nbr, b, i, j, k, 2 * axis + 1)
+                        if not (alo and ahi):
+                            good = False
+                            break
+                        grad[b, i, j, k, axis] = (hi - lo) / (2.0 * h)
+                    ok[b, i, j, k] = good
+
+
+@njit(cache=True)
+def _sign_flips(vals, act, ref, ref_act, nbr):
+    """Edges (+x,+y,+z) between active voxels where ``vals`` changes sign and ``ref`` does not."""
+    extra = 0
+    edges = 0
+    for b in range(vals.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if not (act[b, i, j, k] and ref_act[b, i, j, k]):
+                        continue
+                    for f in (1, 3, 5):
+                        v, a = _nb(vals, act, nbr, b, i, j, k, f)
+                        r, ra = _nb(ref, ref_act, nbr, b, i, j, k, f)
+                        if not (a and ra):
+                            continue
+                        edges += 1
+                        flip = (vals[b, i, j, k] > 0) != (v > 0)
+                        ref_flip = (ref[b, i, j, k] > 0) != (r > 0)
+                        if flip and not ref_flip:
+                            extra += 1
+    return extra, edges
+
+
+def central_gradient(grid: BlockGrid) -> tuple[np.ndarray, np.ndarray]:
+    """(ijk (N,3), gradient (N,3)) by central differences at voxels with 6 active neighbours."""
+    vals = grid.values.astype(np.float64)
+    grad = np.zeros(vals.shape + (3,))
+    ok = np.zeros(vals.shape, dtype=bool)
+    _central_gradient(vals, grid.active, block_neighbours(grid), float(grid.voxel_size), grad, ok)
+    b, i, j, k = np.nonzero(ok)
+    return grid.origins[b] + np.stack([i, j, k], axis=1), grad[b, i, j, k]
+
+
+def gradient_stats(grid: BlockGrid, mask: Callable[[np.ndarray], np.ndarray] | None = None) -> dict:
+    """|grad f| statistics (approximate-distance-fields 1.2: normalisation, |grad| = 1).
+
+    ``mask``: optional predicate on world points (N,3) -> bool selecting the voxels to use
+    (e.g. away from the medial axis).
+    """
+    ijk, g = central_gradient(grid)
+    if mask is not None and len(ijk):
+        keep = np.asarray(mask(ijk * grid.voxel_size), dtype=bool)
+        ijk, g = ijk[keep], g[keep]
+    mag = np.linalg.norm(g, axis=1)
+    if len(mag) == 0:
+        return {"voxels": 0}
+    return {
+        "voxels": int(len(mag)),
+        "mean": float(mag.mean()),
+        "p01": float(np.percentile(mag, 1)),
+        "p99": float(np.percentile(mag, 99)),
+        "share_below_0_5": float((mag < 0.5).mean()),
+        "share_within_1pct": float((np.abs(mag - 1.0) <= 0.01).mean()),
+    }
+
+
+def distance_deviation(
+    grid: BlockGrid, reference: Callable[[np.ndarray], np.ndarray], band: float, signed: bool = True
+) -> dict:
+    """Deviation of the active values from a reference distance where |reference| < band.
+
+    ``reference``: world points (N,3) -> distance in the grid's convention (same sign);
+    ``signed=False`` compares absolute values (for unsigned distance grids). ``band`` is in
+    world units (approximate-distance-fields eq. 9: the deviation near the boundary).
+    """
+    ijk, v = grid.active_voxels()
+    ref = np.asarray(reference(ijk * grid.voxel_size), dtype=np.float64)
+    if not signed:
+        ref = np.abs(ref)
+    near = np.abs(ref) < band
+    if not near.any():
+        return {"voxels": 0}
+    err = np.abs(v[near].astype(np.float64) - ref[near])
+    return {
+        "voxels": int(near.sum()),
+        "max": float(err.max()),
+        "mean": float(err.mean()),
+        "rms": float(np.sqrt((err**2).mean())),
+        "max_over_voxel": float(err.max() / grid.voxel_size),
+    }
+
+
+def extra_zero_crossings(field: BlockGrid, reference: BlockGrid) -> dict:
+    """Count voxel edges where ``field`` changes sign but ``reference`` does not.
+
+    Both grids are compared on ``field``'s blocks; ``reference`` (e.g. frep, or the level
+    set negated) contributes where it has active voxels. Signs: > 0 vs <= 0.
+    """
+    rows = reference.block_index(field.origins)
+    has = rows >= 0
+    ref = np.zeros(field.values.shape, dtype=np.float64)
+    ref_act = np.zeros(field.values.shape, dtype=bool)
+    ref[has] = reference.values[rows[has]]
+    ref_act[has] = reference.active[rows[has]]
+    extra, edges = _sign_flips(
+        field.values.astype(np.float64), field.active, ref, ref_act, block_neighbours(field)
+    )
+    return {"extra_zero_crossings": int(extra), "edges_compared": int(edges)}

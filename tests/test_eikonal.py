@@ -1,0 +1,243 @@
+"""Block FIM eikonal solver (pipeline.eikonal) on analytic sphere, box and torus bands.
+
+The frep input is built here as the voxeliser builds it: the field evaluated on every 8^3
+leaf that touches the band, active where |f| < band * h.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.eikonal import signed_distance_blocks, solve_distance, surface_blocks, surface_grid
+from pipeline.grid import LEAF, BlockGrid, vdb
+from pipeline.hfrep import HFRepField, hfrep_blocks
+from pipeline.quality import central_gradient, extra_zero_crossings, gradient_stats
+
+C = np.array([0.013, -0.021, 0.007])  # off-grid centre: no voxel-aligned symmetry
+HALF = np.array([0.5, 0.35, 0.45])
+
+
+def sphere(p: np.ndarray) -> np.ndarray:
+    return 0.6 - np.linalg.norm(p - C, axis=-1)
+
+
+def box(p: np.ndarray) -> np.ndarray:
+    q = np.abs(p - C) - HALF
+    return -(np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(-1), 0))
+
+
+def torus(p: np.ndarray) -> np.ndarray:
+    q = p - C
+    return 0.22 - np.hypot(np.hypot(q[..., 0], q[..., 1]) - 0.55, q[..., 2])
+
+
+def medial_distance(name: str, p: np.ndarray) -> np.ndarray:
+    """Distance-like measure from the medial axis (interior and exterior) of each shape."""
+    q = p - C
+    if name == "sphere":
+        return np.linalg.norm(q, axis=-1)
+    if name == "torus":
+        rho = np.hypot(q[..., 0], q[..., 1])
+        return np.minimum(np.hypot(rho - 0.55, q[..., 2]), rho)
+    gaps = np.sort(np.abs(np.abs(q) - HALF), axis=-1)  # box: two faces nearly equidistant
+    return np.minimum(gaps[..., 1] - gaps[..., 0], np.linalg.norm(q, axis=-1))
+
+
+SHAPES = {"sphere": sphere, "box": box, "torus": torus}
+
+
+def band_grid(fn, n: int, band: float = 3.0) -> tuple[BlockGrid, tuple[np.ndarray, np.ndarray]]:
+    """frep BlockGrid of ``fn`` on the domain [-1, 1]^3 with n voxels per side."""
+    h = 2.0 / n
+    lo = np.full(3, -(n // 2), dtype=np.int64)
+    nb = -(-n // LEAF) + 1
+    axes = [np.arange(nb)] * 3
+    origins = (np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3) + (lo >> 3)) << 3
+    r = np.arange(LEAF)
+    local = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1)
+    ijk = origins[:, None, None, None, :] + local[None]
+    f = fn(ijk * h)
+    in_domain = np.all((ijk >= lo) & (ijk < lo + n), axis=-1)
+    active = (np.abs(f) < band * h) & in_domain
+    keep = active.reshape(len(origins), -1).any(axis=1)
+    grid = BlockGrid(h, band * h, origins[keep], f[keep].astype(np.float32), active[keep])
+    return grid, (lo, lo + n - 1)
+
+
+def solved(fn, n: int, max_vox: float | None = 3.0):
+    frep, dom = band_grid(fn, n)
+    h = 2.0 / n
+    res = solve_distance(frep, None if max_vox is None else max_vox * h, dom)
+    return frep, dom, res
+
+
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_error_shrinks_at_first_order(name: str) -> None:
+    fn = SHAPES[name]
+    rows = []
+    for n in (32, 64, 128):
+        _, _, res = solved(fn, n)
+        ijk, v = signed_distance_blocks(res).active_voxels()
+        err = np.abs(v + fn(ijk * (2.0 / n)))
+        rows.append((n, err.max(), err.mean()))
+    print(f"\n{name}: n, max error, mean error (world units, domain [-1,1]^3)")
+    for n, emax, emean in rows:
+        print(f"  {n:4d}  {emax:.5f}  {emean:.6f}  max/h={emax * n / 2:.2f}")
+    for (_, m0, a0), (_, m1, a1) in zip(rows[:-1], rows[1:], strict=True):
+        # first order with the log factor of converging fronts: observed order >= 0.6
+        assert math.log2(m0 / m1) >= 0.6, rows
+        assert math.log2(a0 / a1) >= 0.6, rows
+    assert rows[-1][1] < 1.5 * 2.0 / 128  # max error below 1.5 voxels at 128^3
+
+
+def _grad_magnitudes(name: str, n: int = 128) -> np.ndarray:
+    _, _, res = solved(SHAPES[name], n)
+    ijk, g = central_gradient(signed_distance_blocks(res))
+    h = 2.0 / n
+    far = medial_distance(name, ijk * h) > 8 * h
+    return np.linalg.norm(g[far], axis=1)
+
+
+@pytest.mark.parametrize("name", ["sphere", "torus"])
+def test_gradient_norm_first_order_bound(name: str) -> None:
+    mag = _grad_magnitudes(name)
+    assert len(mag) > 10000
+    assert np.mean(np.abs(mag - 1) <= 0.05) >= 0.99
+    assert np.all(mag > 0.5)
+
+
+@pytest.mark.xfail(
+    strict=True, reason="first-order Godunov FIM: |grad| within 1% on 34% (sphere), 36% (torus) at 128^3"
+)
+@pytest.mark.parametrize("name", ["sphere", "torus"])
+def test_gradient_norm_within_one_percent(name: str) -> None:
+    mag = _grad_magnitudes(name)
+    assert np.mean(np.abs(mag - 1) <= 0.01) >= 0.99
+
+
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_interior_fully_covered_and_outward_growth_stops(name: str) -> None:
+    fn = SHAPES[name]
+    n, max_vox = 64, 4.0
+    h = 2.0 / n
+    _, dom, res = solved(fn, n, max_vox)
+    dist = res.distance
+    r = np.arange(LEAF)
+    ijk = (dist.origins[:, None, None, None, :] + np.stack(np.meshgrid(r, r, r, indexing="ij"), -1)[None])
+    in_dom = np.all((ijk >= dom[0]) & (ijk <= dom[1]), axis=-1)
+    f = fn(ijk * h)
+    assert np.all(dist.active[(f > 0) & in_dom])  # every inside voxel that exists is solved
+    assert np.array_equal(res.inside[in_dom & (np.abs(f) > h)], f[in_dom & (np.abs(f) > h)] > 0)
+    # every inside voxel of the domain exists in the block set
+    n_inside = int((fn(_domain_points(dom, h)) > 0).sum())
+    assert int((dist.active & (f > 0) & in_dom).sum()) == n_inside
+    out = dist.active & (f < 0)
+    assert dist.values[out].max() <= max_vox * h + 1e-6
+    assert np.all(dist.active[in_dom & (f < 0) & (-f < (max_vox - 1.5) * h)])
+    assert not np.any(dist.active & in_dom & (-f > (max_vox + 1.5) * h))
+
+
+def _domain_points(dom, h: float) -> np.ndarray:
+    axes = [np.arange(dom[0][a], dom[1][a] + 1) for a in range(3)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3) * h
+
+
+def test_sparse_block_set_grows_with_surface_not_volume() -> None:
+    _, _, sparse = solved(sphere, 128, 3.0)
+    _, _, dense = solved(sphere, 128, None)
+    assert dense.distance.active.all()
+    assert sparse.stats["blocks"] < 0.5 * dense.stats["blocks"]
+    both = dense.distance.block_index(sparse.distance.origins)
+    a = sparse.distance
+    same = a.active
+    assert np.allclose(a.values[same], dense.distance.values[both][same], atol=1e-6)
+
+
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_hfrep_has_the_sign_of_frep(name: str) -> None:
+    fn = SHAPES[name]
+    n = 64
+    frep, _, res = solved(fn, n, 4.0)
+    field = HFRepField.from_result(fn, res, step="sigmoid", slope=0.01)
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(-0.95, 0.95, size=(200000, 3))
+    ok = field.distance.supported(pts)
+    v = field.evaluate(pts[ok])
+    f = fn(pts[ok])
+    assert ok.sum() > 20000
+    assert np.array_equal(np.sign(v), np.sign(f))
+    grid = hfrep_blocks(frep, res)
+    assert extra_zero_crossings(grid, frep)["extra_zero_crossings"] == 0
+    ijk, vals = grid.active_voxels()
+    fv = fn(ijk * grid.voxel_size)
+    assert np.all(np.sign(vals[np.abs(fv) > 1e-6]) == np.sign(fv[np.abs(fv) > 1e-6]))
+
+
+def test_hollow_shell_cavity_is_outside_and_clipped_object_is_inside() -> None:
+    def shell(p):
+        r = np.linalg.norm(p - C, axis=-1)
+        return np.minimum(0.8 - r, r - 0.4)
+
+    n = 64
+    h = 2.0 / n
+    frep, dom, res = solved(shell, n, 3.0)
+    ijk, v = signed_distance_blocks(res).active_voxels()
+    f = shell(ijk * h)
+    assert np.all(np.sign(-v[np.abs(f) > h]) == np.sign(f[np.abs(f) > h]))
+    cavity_centre = np.array([0, 0, 0])
+    assert res.distance.sample_voxels(cavity_centre[None])[0] == res.distance.background  # unsolved
+
+    def big(p):  # sphere clipped by the domain: the interior touches the domain faces
+        return 1.1 - np.linalg.norm(p, axis=-1)
+
+    _, dom, res = solved(big, n, 3.0)
+    corner_inside = np.array([[dom[0][0], 0, 0]])
+    assert res.distance.sample_voxels(corner_inside)[0] > 0
+    row = res.distance.block_index(corner_inside >> 3 << 3)[0]
+    assert res.inside[row].any()
+
+
+@settings(max_examples=8, deadline=None)
+@given(
+    cx=st.floats(-0.05, 0.05), cy=st.floats(-0.05, 0.05), cz=st.floats(-0.05, 0.05),
+    radius=st.floats(0.3, 0.7), squared=st.booleans(),
+)
+def test_sphere_any_position_non_distance_frep(cx, cy, cz, radius, squared) -> None:
+    c = np.array([cx, cy, cz])
+    exact = lambda p: radius - np.linalg.norm(p - c, axis=-1)  # noqa: E731
+    fn = (lambda p: radius**2 - np.sum((p - c) ** 2, axis=-1)) if squared else exact  # noqa: E731
+    n = 48
+    h = 2.0 / n
+    frep, dom = band_grid(fn, n, band=3.0 if not squared else 6.0)
+    res = solve_distance(frep, 3 * h, dom)
+    ijk, v = signed_distance_blocks(res).active_voxels()
+    err = np.abs(v + exact(ijk * h))
+    assert err.max() < 1.2 * h
+    near = np.abs(exact(ijk * h)) < 1.5 * h
+    assert err[near].max() < 0.15 * h  # sub-voxel initialisation, not 0 / infinity
+
+
+def test_surface_level_set_grid() -> None:
+    n, band = 64, 3.0
+    h = 2.0 / n
+    fn = lambda p: 0.6 - np.linalg.norm(p, axis=-1)  # noqa: E731  (the contract check's sphere)
+    frep, dom = band_grid(fn, n)
+    res = solve_distance(frep, band * h, dom)
+    blocks = surface_blocks(res, band)
+    assert blocks.background == pytest.approx(band * h)
+    assert np.all(np.abs(blocks.values[~blocks.active]) == pytest.approx(band * h))
+    grid = surface_grid(res, band)
+    assert grid.gridClass == vdb.GridClass.LEVEL_SET
+    assert grid.name == "surface"
+    acc = grid.getConstAccessor()
+    ijk = grid.transform.worldToIndexCellCentered((0.5, 0.0, 0.0))
+    assert abs(acc.getValue(tuple(int(c) for c in ijk)) - (-0.1)) < 0.5 * h
+    assert acc.getValue((0, 0, 0)) == pytest.approx(-0.6, abs=1.5 * h)  # interior solved
+    assert acc.getValue((1000, 0, 0)) == pytest.approx(band * h)
+    stats = gradient_stats(signed_distance_blocks(res), lambda p: np.linalg.norm(p, axis=1) > 8 * h)
+    assert 0.97 < stats["mean"] < 1.03 and stats["share_below_0_5"] == 0.0

@@ -497,15 +497,18 @@ def select_polygon(polys: Polygons, planes: str, rng: np.random.Generator, eps: 
     """Select_Polygon of section 3.3.1 with the two strategies of section 3.3.3.
 
     ``naive``: a uniformly random polygon. ``optimised``: among candidate planes (one polygon
-    per distinct plane; a random subset of ``max_candidates`` when there are more), the one
+    per distinct plane), the one
     with Ksplit = 0 and the largest K = Kdist * Kangle * Ktree if any has Ksplit = 0, else the
-    one with the largest K (ties: fewer splits, then better balance).
+    one with the largest K (ties: fewer splits, then better balance). Lists with more than
+    ``max_candidates`` distinct planes are sampled: a random subset of that size is scanned in
+    chunks, stopping at the first chunk that contains a Ksplit = 0 plane (a cost cap for large
+    meshes; lists of up to ``max_candidates`` planes are searched exhaustively).
     """
     if planes == "naive":
         return int(rng.integers(polys.count))
     _, cand = np.unique(polys.plane_id, return_index=True)
     if len(cand) > max_candidates:
-        cand = np.sort(rng.choice(cand, max_candidates, replace=False))
+        cand = _scan_large(polys, rng.permutation(cand)[:max_candidates], eps)
     sc = _candidate_scores(polys, cand, eps)
     k = sc[:, 1] * sc[:, 2] * sc[:, 3]
     zero = sc[:, 0] == 0
@@ -517,8 +520,18 @@ def select_polygon(polys: Polygons, planes: str, rng: np.random.Generator, eps: 
     return int(cand[best])
 
 
+def _scan_large(polys: Polygons, cand: np.ndarray, eps: float, chunk: int = 16) -> np.ndarray:
+    """Candidates of a large list, scanned in random chunks; stop at the first chunk that holds a
+    Ksplit = 0 plane (that plane is taken anyway by section 3.3.3), else keep them all."""
+    for c0 in range(0, len(cand), chunk):
+        part = cand[c0:c0 + chunk]
+        if np.any(_candidate_scores(polys, part, eps)[:, 0] == 0):
+            return part
+    return cand
+
+
 def build_tree(polys: Polygons, planes: str = "optimised", seed: int = 0, eps: float | None = None,
-               max_candidates: int = 256) -> Tree:
+               max_candidates: int = 128) -> Tree:
     """Build_Tree of section 3.3.1 (iterative, so deep naive trees do not hit recursion limits)."""
     if planes not in ("naive", "optimised"):
         raise ValueError(f"planes must be 'naive' or 'optimised', got {planes!r}")
@@ -677,7 +690,7 @@ class BSPField:
     @classmethod
     def from_polygons(cls, vertices: np.ndarray, faces: np.ndarray, rfunc: str = "r0",
                       planes: str = "optimised", seed: int = 0, special_cases: bool = True,
-                      max_candidates: int = 256) -> BSPField:
+                      max_candidates: int = 128) -> BSPField:
         """Build from oriented simplices: triangles (outward CCW) in 3D, CCW segments in 2D."""
         polys = merge_coplanar(vertices, faces)
         scale = float(np.linalg.norm(np.ptp(np.asarray(vertices, float), axis=0))) or 1.0
@@ -698,7 +711,7 @@ class BSPField:
 
     @classmethod
     def from_mesh(cls, mesh: trimesh.Trimesh, rfunc: str = "r0", planes: str = "optimised",
-                  seed: int = 0, special_cases: bool = True, max_candidates: int = 256) -> BSPField:
+                  seed: int = 0, special_cases: bool = True, max_candidates: int = 128) -> BSPField:
         """Build from a triangle mesh; inward-oriented closed meshes are flipped first."""
         faces = np.asarray(mesh.faces, dtype=np.int64)
         if mesh.is_watertight and mesh.volume < 0:
@@ -716,6 +729,10 @@ class BSPField:
             edges.append(np.stack([np.arange(m), (np.arange(m) + 1) % m], axis=1) + base)
             base += m
         return cls.from_polygons(np.concatenate(verts), np.concatenate(edges), **kw)
+
+    def with_rfunc(self, rfunc: str) -> BSPField:
+        """The same tree evaluated with another R-function family (no rebuild)."""
+        return BSPField(self.tree, rfunc, dict(self.stats), self.scale)
 
     def _args(self):
         t = self.tree

@@ -1,0 +1,362 @@
+"""BSP-fields (pipeline.bsp) and approximate distance fields (pipeline.adf) on small shapes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from matplotlib.path import Path as MplPath
+
+from pipeline import rfunctions as rf
+from pipeline.adf import ADFField
+from pipeline.bsp import FAMILY_CODE, SPECIAL_B, SPECIAL_C, BSPField, merge_coplanar, nb_and, nb_or
+
+FAMILIES = ("min_max", "r0", "sardf")
+
+
+# --------------------------------------------------------------------------- shapes
+
+
+def voxel_solid(cells: list[tuple[int, int, int]]) -> trimesh.Trimesh:
+    """Closed mesh of a union of unit cubes (faces shared by two cubes removed)."""
+    boxes = [trimesh.creation.box((1, 1, 1)).apply_translation(np.add(c, 0.5)) for c in cells]
+    mesh = trimesh.util.concatenate(boxes)
+    tri = mesh.triangles
+    edges = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 1], tri[:, 0] - tri[:, 2]], axis=1)
+    j = np.argmax(np.linalg.norm(edges, axis=2), axis=1)  # the diagonal of the unit square
+    mid = 0.5 * (tri[np.arange(len(tri)), j] + tri[np.arange(len(tri)), (j + 1) % 3])
+    key = np.round(mid * 4).astype(np.int64)  # both triangles of a square share it
+    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    keep = cnt[inv.ravel()] == 2  # a square of one cube only; shared squares count 4
+    out = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=True)
+    assert out.is_watertight and out.volume > 0
+    return out
+
+
+L_SHAPE = [(0, 0, 0), (1, 0, 0), (2, 0, 0), (0, 1, 0), (0, 2, 0)]
+U_SHAPE = [(0, 0, 0), (1, 0, 0), (2, 0, 0), (0, 1, 0), (0, 2, 0), (2, 1, 0), (2, 2, 0)]
+RING = [(x, y, 0) for x in range(3) for y in range(3) if (x, y) != (1, 1)]
+STEPS = [(x, y, z) for x in range(3) for y in range(3) for z in range(3) if x + y + z <= 2]
+SHAPES = {"L": L_SHAPE, "U": U_SHAPE, "ring": RING, "steps": STEPS}
+
+NOTCH = np.array([[0, 0], [4, 0], [4, 3], [3, 3], [2, 1], [1, 3], [0, 3]], float)
+SQUARE_HOLE = [np.array([[0, 0], [4, 0], [4, 4], [0, 4]], float),
+               np.array([[1, 1], [1, 3], [3, 3], [3, 1]], float)]  # hole: clockwise
+
+
+def _random_points(mesh: trimesh.Trimesh, n: int, seed: int) -> np.ndarray:
+    lo, hi = mesh.bounds
+    ext = hi - lo
+    return np.random.default_rng(seed).uniform(lo - 0.2 * ext, hi + 0.2 * ext, (n, 3))
+
+
+def _far_from_surface(mesh: trimesh.Trimesh, p: np.ndarray, dist: float) -> np.ndarray:
+    _, d, _ = trimesh.proximity.closest_point(mesh, p)
+    return d > dist
+
+
+def _inside_2d(loops: list[np.ndarray], p: np.ndarray) -> np.ndarray:
+    count = np.zeros(len(p), dtype=int)
+    for loop in loops:
+        count += MplPath(loop).contains_points(p)
+    return count % 2 == 1
+
+
+def _dist_to_segments_2d(loops: list[np.ndarray], p: np.ndarray) -> np.ndarray:
+    best = np.full(len(p), np.inf)
+    for loop in loops:
+        for a, b in zip(loop, np.roll(loop, -1, axis=0)):
+            t = np.clip(((p - a) @ (b - a)) / ((b - a) @ (b - a)), 0, 1)
+            best = np.minimum(best, np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1))
+    return best
+
+
+# --------------------------------------------------------------------------- R-functions
+
+
+finite = st.floats(-1e3, 1e3, allow_nan=False)
+
+
+@settings(max_examples=300, deadline=None)
+@given(finite, finite, st.sampled_from(FAMILIES))
+def test_numba_rfunctions_match_reference(f1: float, f2: float, family: str) -> None:
+    code = FAMILY_CODE[family]
+    ref_and = float(rf.r_and(np.array(f1), np.array(f2), family))
+    ref_or = float(rf.r_or(np.array(f1), np.array(f2), family))
+    assert nb_and(f1, f2, code, rf.SARDF_K) == pytest.approx(ref_and, abs=1e-12, rel=1e-12)
+    assert nb_or(f1, f2, code, rf.SARDF_K) == pytest.approx(ref_or, abs=1e-12, rel=1e-12)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_rfunctions_are_nondecreasing(family: str) -> None:
+    """Dense check that every family is monotone in each argument (basis of bound())."""
+    g = np.linspace(-3, 3, 1201)
+    f1, f2 = np.meshgrid(g, g, indexing="ij")
+    for op in (rf.r_and, rf.r_or):
+        v = op(f1, f2, family)
+        assert np.all(np.diff(v, axis=0) >= -1e-12)
+        assert np.all(np.diff(v, axis=1) >= -1e-12)
+
+
+def test_sardf_partial_derivative_bounded_by_one() -> None:
+    """d/df1 of the SARDF window term is at most 1 (so AND is nondecreasing), on the unit circle."""
+    th = np.linspace(0, 2 * np.pi, 200001)
+    f1, f2, h = np.cos(th), np.sin(th), 1e-7
+    d = (rf.r_and(f1 + h, f2, "sardf") - rf.r_and(f1 - h, f2, "sardf")) / (2 * h)
+    assert d.min() >= -1e-6 and d.max() <= 1 + 1e-6
+
+
+# --------------------------------------------------------------------------- merge and tree stats
+
+
+def test_box_has_six_planes_and_no_splits() -> None:
+    field = BSPField.from_mesh(trimesh.creation.box((2, 3, 4)), planes="naive", seed=3)
+    s = field.stats
+    assert (s["faces"], s["planes"], s["polygons"], s["splits"]) == (12, 6, 6, 0)
+    assert s["nodes"] == 6 and s["set_operations"] == 5
+
+
+def test_merge_counts_on_voxel_shapes() -> None:
+    ring = voxel_solid(RING)
+    polys = merge_coplanar(ring.vertices, ring.faces)
+    # outer 4 sides, inner 4 sides, top and bottom (each an annulus made of many triangles)
+    assert polys.count == 10 and len(np.unique(polys.plane_id)) == 10
+    steps = voxel_solid(STEPS)
+    n_planes = len(np.unique(merge_coplanar(steps.vertices, steps.faces).plane_id))
+    assert n_planes == 3 + 3 * 3  # three outer faces at 0 plus three step levels per axis
+
+
+def test_icosphere_polygons_are_triangles() -> None:
+    sphere = trimesh.creation.icosphere(2)
+    assert BSPField.from_mesh(sphere).stats["planes"] == len(sphere.faces)
+
+
+@pytest.mark.parametrize("name", ["L", "U", "ring", "steps"])
+def test_optimised_splits_no_more_than_naive(name: str) -> None:
+    mesh = voxel_solid(SHAPES[name])
+    opt = BSPField.from_mesh(mesh, planes="optimised").stats["splits"]
+    naive = [BSPField.from_mesh(mesh, planes="naive", seed=s).stats["splits"] for s in range(5)]
+    assert opt <= min(naive)
+    assert opt == 0
+
+
+# --------------------------------------------------------------------------- 3D fields
+
+
+def _reference_eval(field: BSPField, p: np.ndarray) -> np.ndarray:
+    """Section 3.3.2 formula evaluated recursively with pipeline.rfunctions (NumPy)."""
+    t, fam = field.tree, field.rfunc
+
+    def node(j: int) -> np.ndarray:
+        fa = p @ t.normals[j] + t.offsets[j]
+        fb = node(t.pos[j]) if t.pos[j] >= 0 else None
+        fc = node(t.neg[j]) if t.neg[j] >= 0 else None
+        a, o = (lambda x, y: rf.r_and(x, y, fam)), (lambda x, y: rf.r_or(x, y, fam))
+        if fb is None and fc is None:
+            return fa
+        if fc is None:
+            return a(fa, fb)
+        if fb is None:
+            return o(fa, fc)
+        if t.mode[j] == SPECIAL_B:
+            return a(o(fa, fc), fb)
+        if t.mode[j] == SPECIAL_C:
+            return a(o(-fa, fb), fc)
+        return o(a(o(fa, fc), fb), a(-fa, fc))
+
+    return node(len(t.mode) - 1)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+@pytest.mark.parametrize("planes", ["naive", "optimised"])
+def test_compiled_matches_reference_formula(family: str, planes: str) -> None:
+    mesh = voxel_solid(STEPS)
+    field = BSPField.from_mesh(mesh, rfunc=family, planes=planes, seed=1)
+    p = _random_points(mesh, 2000, 0)
+    np.testing.assert_allclose(field.evaluate(p), _reference_eval(field, p), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+@pytest.mark.parametrize("planes", ["naive", "optimised"])
+@pytest.mark.parametrize("name", ["L", "U", "ring", "steps"])
+def test_sign_equals_containment(name: str, planes: str, family: str) -> None:
+    mesh = voxel_solid(SHAPES[name])
+    field = BSPField.from_mesh(mesh, rfunc=family, planes=planes, seed=7)
+    p = _random_points(mesh, 3000, 1)
+    p = p[_far_from_surface(mesh, p, 1e-6)]
+    v = field.evaluate(p)
+    assert np.all((v > 0) == mesh.contains(p))
+    assert np.all(v != 0)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_sign_on_icosphere_and_torus(family: str) -> None:
+    for mesh in (trimesh.creation.icosphere(2), trimesh.creation.torus(1.0, 0.4, 24, 12)):
+        field = BSPField.from_mesh(mesh, rfunc=family)
+        p = _random_points(mesh, 3000, 2)
+        p = p[_far_from_surface(mesh, p, 1e-6)]
+        assert np.all((field.evaluate(p) > 0) == mesh.contains(p))
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_zero_on_faces(family: str) -> None:
+    for mesh in (voxel_solid(RING), trimesh.creation.torus(1.0, 0.4, 24, 12)):
+        for planes in ("naive", "optimised"):
+            field = BSPField.from_mesh(mesh, rfunc=family, planes=planes)
+            s, _ = trimesh.sample.sample_surface(mesh, 2000, seed=3)
+            assert np.abs(field.evaluate(s)).max() < 1e-12 * mesh.scale
+
+
+def test_special_cases_keep_the_set() -> None:
+    mesh = voxel_solid(STEPS)
+    a = BSPField.from_mesh(mesh, planes="naive", seed=2, special_cases=True)
+    b = BSPField.from_mesh(mesh, planes="naive", seed=2, special_cases=False)
+    assert a.stats["special_cases"] > 0 and b.stats["special_cases"] == 0
+    assert a.stats["set_operations"] < b.stats["set_operations"]
+    p = _random_points(mesh, 5000, 4)
+    assert np.array_equal(a.evaluate(p) > 0, b.evaluate(p) > 0)
+
+
+def test_inverted_mesh_is_flipped() -> None:
+    box = trimesh.creation.box((1, 1, 1))
+    inv = trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False)
+    assert BSPField.from_mesh(inv).evaluate(np.zeros((1, 3)))[0] > 0
+
+
+# --------------------------------------------------------------------------- bounds
+
+
+_U_FIELDS = {fam: BSPField.from_mesh(voxel_solid(U_SHAPE), rfunc=fam, planes="naive", seed=5)
+             for fam in FAMILIES}
+coord = st.floats(-1.0, 4.0, allow_nan=False)
+size = st.floats(0.0, 2.0, allow_nan=False)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.tuples(coord, coord, coord), st.tuples(size, size, size), st.sampled_from(FAMILIES),
+       st.integers(0, 2**31))
+def test_bound_contains_samples_3d(lo, ext, family, seed) -> None:
+    field = _U_FIELDS[family]
+    lo = np.array(lo)
+    hi = lo + np.array(ext)
+    flo, fhi = field.bound(lo[None], hi[None])
+    rng = np.random.default_rng(seed)
+    corners = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+    p = np.concatenate([lo + rng.random((300, 3)) * (hi - lo), lo + corners * (hi - lo)])
+    v = field.evaluate(p)
+    assert flo[0] <= v.min() and v.max() <= fhi[0]
+
+
+def test_bound_is_tight_for_points_and_vectorised() -> None:
+    field = _U_FIELDS["r0"]
+    p = _random_points(voxel_solid(U_SHAPE), 500, 5)
+    flo, fhi = field.bound(p, p)
+    v = field.evaluate(p)
+    assert np.all(flo <= v) and np.all(v <= fhi)
+    assert np.abs(fhi - flo).max() < 1e-9
+
+
+# --------------------------------------------------------------------------- 2D
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+@pytest.mark.parametrize("planes", ["naive", "optimised"])
+def test_2d_sign_and_zero_set(family: str, planes: str) -> None:
+    for loops in ([NOTCH], SQUARE_HOLE):
+        field = BSPField.from_polygon2d(loops, rfunc=family, planes=planes, seed=4)
+        assert field.dim == 2
+        p = np.random.default_rng(6).uniform(-1, 5, (5000, 2))
+        p = p[_dist_to_segments_2d(loops, p) > 1e-6]
+        assert np.all((field.evaluate(p) > 0) == _inside_2d(loops, p))
+        t = np.random.default_rng(7).random(200)[:, None]
+        on = np.concatenate([a + t * (b - a) for lp in loops for a, b in zip(lp, np.roll(lp, -1, 0))])
+        assert np.abs(field.evaluate(on)).max() < 1e-12
+
+
+def test_2d_tree_counts_and_bound() -> None:
+    hole = BSPField.from_polygon2d(SQUARE_HOLE, planes="optimised", rfunc="sardf")
+    assert hole.stats["planes"] == 8 and hole.stats["splits"] == 0
+    # collinear consecutive edges merge into one polygon
+    merged = BSPField.from_polygon2d([np.array([[0, 0], [1, 0], [2, 0], [2, 2], [0, 2]], float)])
+    assert merged.stats["faces"] == 5 and merged.stats["planes"] == 4
+    rng = np.random.default_rng(8)
+    lo = rng.uniform(-1, 5, (300, 2))
+    hi = lo + rng.uniform(0, 1.5, (300, 2))
+    flo, fhi = hole.bound(lo, hi)
+    for i in range(300):
+        v = hole.evaluate(lo[i] + rng.random((60, 2)) * (hi[i] - lo[i]))
+        assert flo[i] <= v.min() and v.max() <= fhi[i]
+
+
+# --------------------------------------------------------------------------- C1 continuity
+
+
+def _max_gradient_jump(field: BSPField, a: np.ndarray, b: np.ndarray, n: int) -> float:
+    """Largest change of the central-difference gradient between neighbouring samples on a segment."""
+    t = np.linspace(0, 1, n)[:, None]
+    p = a + t * (b - a)
+    h = 1e-6
+    grads = np.stack([(field.evaluate(p + h * e) - field.evaluate(p - h * e)) / (2 * h)
+                      for e in np.eye(3)], axis=1)
+    return float(np.linalg.norm(np.diff(grads, axis=0), axis=1).max())
+
+
+@pytest.mark.parametrize("name", ["cube", "L"])
+def test_c1_away_from_surface(name: str) -> None:
+    """r0 and sardf have continuous gradients off the surface; min/max jumps on f1 = f2."""
+    mesh = trimesh.creation.box((2, 2, 2)) if name == "cube" else voxel_solid(L_SHAPE)
+    seg = {"cube": ([-0.6, -0.2, 0.1], [0.6, 0.35, -0.2]), "L": ([0.3, 0.2, 0.5], [0.7, 2.6, 0.45])}
+    a, b = (np.array(v, float) for v in seg[name])
+    assert _far_from_surface(mesh, a + np.linspace(0, 1, 50)[:, None] * (b - a), 0.05).all()
+    for family in FAMILIES:
+        field = BSPField.from_mesh(mesh, rfunc=family)
+        coarse = _max_gradient_jump(field, a, b, 400)
+        fine = _max_gradient_jump(field, a, b, 800)
+        if family == "min_max":
+            assert coarse > 0.5 and fine > 0.5  # a jump that does not shrink with the step
+        else:
+            assert coarse < 0.05 and fine < 0.6 * coarse  # shrinks with the step: continuous
+
+
+# --------------------------------------------------------------------------- ADF
+
+
+@pytest.mark.parametrize("join", ["requiv", "rconj"])
+def test_adf_sign_zero_and_bounds(join: str) -> None:
+    mesh = voxel_solid(L_SHAPE)
+    field = ADFField.from_mesh(mesh, join=join, p=2)
+    p = _random_points(mesh, 1500, 9)
+    p = p[_far_from_surface(mesh, p, 1e-6)]
+    v = field.evaluate(p)
+    assert np.all((v > 0) == mesh.contains(p))
+    s, _ = trimesh.sample.sample_surface(mesh, 300, seed=10)
+    assert np.abs(field.evaluate(s)).max() < 1e-12 * mesh.scale
+    rng = np.random.default_rng(11)
+    lo = rng.uniform(-0.5, 3.0, (80, 3))
+    hi = lo + rng.uniform(0, 1.0, (80, 3))
+    flo, fhi = field.bound(lo, hi)
+    for i in range(80):
+        w = field.evaluate(lo[i] + rng.random((40, 3)) * (hi[i] - lo[i]))
+        assert flo[i] <= w.min() and w.max() <= fhi[i]
+
+
+def test_adf_requiv_is_normalised_near_a_face() -> None:
+    """Eq. 6 keeps first-order normalisation: |F| ~ distance close to a face centre."""
+    mesh = voxel_solid(L_SHAPE)
+    field = ADFField.from_mesh(mesh, join="requiv", p=2)
+    bottom = np.nonzero(mesh.face_normals[:, 2] < -0.99)[0][0]
+    centre = mesh.triangles_center[bottom]  # away from the triangle's edges, where joins act
+    d = np.array([1e-4, 1e-3])
+    p = centre - d[:, None] * np.array([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(-field.evaluate(p), d, rtol=1e-3)
+
+
+
+def test_adf_rejects_bad_parameters() -> None:
+    mesh = trimesh.creation.box((1, 1, 1))
+    with pytest.raises(ValueError, match="join"):
+        ADFField.from_mesh(mesh, join="union")
+    with pytest.raises(ValueError, match="p must"):
+        ADFField.from_mesh(mesh, p=0.5)

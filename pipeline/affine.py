@@ -266,9 +266,13 @@ def power(a: AffineForm, p) -> AffineForm:
     lo, hi = a.interval()
     lo = np.maximum(lo, 0.0)
     hi = np.maximum(hi, lo)
+    def fp(x: np.ndarray) -> np.ndarray:
+        return np.power(x, p)
+
+    def inv(al: np.ndarray) -> np.ndarray:  # f'(u) = p u^(p-1) = alpha
+        return np.power(np.maximum(al / p, _TINY), 1.0 / (p - 1.0))
+
     with np.errstate(all="ignore"):
-        fp = (lambda x: np.power(x, p))
-        inv = (lambda al: np.power(np.maximum(al / p, _TINY), 1.0 / (p - 1.0)))
         res = chebyshev(a, lo, hi, fp, inv)
     return res
 

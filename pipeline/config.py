@@ -404,8 +404,9 @@ def locate_nonfinite(job: Job, pts: np.ndarray) -> ConfigError | None:
         vals = bad_node.evaluate(pts, job.t)
         p = pts[~np.isfinite(vals)][0]
         where = tuple(_parse_path(bad_node.where))
-        return ConfigError.one(job.config_path, line_of(job.raw, where), where, f"the field is not a finite number at ({p[0]:g}, {p[1]:g}, {p[2]:g}) "
-                              "(division by zero, log or sqrt of a negative number?)")
+        msg = (f"the field is not a finite number at ({p[0]:g}, {p[1]:g}, {p[2]:g}) "
+               "(division by zero, log or sqrt of a negative number?)")
+        return ConfigError.one(job.config_path, line_of(job.raw, where), where, msg)
     return None
 
 

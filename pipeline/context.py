@@ -35,6 +35,6 @@ class JobContext:
             "frepvdb_config": self.job.name,
             "frepvdb_config_sha256": self.job.config_sha256,
             "frepvdb_stage": stage,
-            "frepvdb_params": params.model_dump_json(by_alias=True) if hasattr(params, "model_dump_json") else str(params),
+            "frepvdb_params": params.model_dump_json(by_alias=True),
             "frepvdb_t": float(self.job.t),
         }

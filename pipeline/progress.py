@@ -24,9 +24,8 @@ class StageProgress:
         if self.bar is not None:
             from stages import REGISTRY
 
-            if message in REGISTRY:
-                if self.bar.n or self.bar.postfix:
-                    self.bar.update(1)
+            if message in REGISTRY and (self.bar.n or self.bar.postfix):
+                self.bar.update(1)
             self.bar.set_postfix_str(message, refresh=True)
 
     def __exit__(self, *exc) -> None:

@@ -90,7 +90,8 @@ class Node(ABC):
         with np.errstate(all="ignore"):
             f = self.field(x, y, z, float(t))
         if not isinstance(f, AffineForm):  # constant field
-            f = AffineForm(np.broadcast_to(np.asarray(f, float), x.c.shape).copy(), np.zeros_like(x.g), np.zeros_like(x.e))
+            c = np.broadcast_to(np.asarray(f, float), x.c.shape).copy()
+            f = AffineForm(c, np.zeros_like(x.g), np.zeros_like(x.e))
         return f
 
     def bound(self, lo: np.ndarray, hi: np.ndarray, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

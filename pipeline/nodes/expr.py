@@ -170,7 +170,10 @@ class _Parser:
         node = self.unary()
         while self.tok.text in ("*", "/"):
             op = self.take()
-            node = _fold(BinOp(op.text, node, self.unary()), op.col)
+            rhs = self.unary()
+            if op.text == "/" and isinstance(rhs, Const) and rhs.args[0] == 0:
+                raise FormulaError("division by zero", op.col)
+            node = _fold(BinOp(op.text, node, rhs), op.col)
         return node
 
     def unary(self) -> Node:

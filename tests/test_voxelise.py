@@ -1,0 +1,123 @@
+"""Sparse voxelisation: narrow-band size, culling, inside tiles, and the written .vdb."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.grid import frep_to_vdb, vdb
+from pipeline.nodes import REGISTRY
+from pipeline.voxelise import enumerate_cells, voxelise
+
+
+def node(kind: str, **params):
+    cls = REGISTRY[kind]
+    return cls(cls.Params.model_validate(params))
+
+
+def cube_domain(n: int, half: float = 1.0):
+    h = 2 * half / n
+    return np.array([-n // 2] * 3), np.array([n // 2] * 3), h
+
+
+@pytest.mark.parametrize("n", [64, 192])
+def test_sphere_band_matches_analytic_volume(n):
+    """Active voxels within 10% of the analytic shell 4 pi r^2 (2 band h) at two resolutions."""
+    r, band = 0.6, 3.0
+    imin, imax, h = cube_domain(n)
+    res = voxelise(node("sphere", radius=r), imin, imax, h, band)
+    shell = 4 * math.pi * r * r * 2 * band * h / h**3
+    assert abs(res.stats["active_voxels"] / shell - 1) < 0.10
+    # every active voxel is really within band (+1 voxel of slack for the gradient estimate)
+    ijk, vals = res.blocks.active_voxels()
+    d = r - np.linalg.norm(ijk * h, axis=1)
+    assert np.abs(d).max() <= (band + 1) * h
+    np.testing.assert_allclose(vals, d, atol=1e-6)
+    # and every voxel within band - 1 of the surface is active (the band has no holes)
+    lo = imin
+    dense = np.stack(np.meshgrid(*[np.arange(lo[0], imax[0] + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    near = dense[np.abs(r - np.linalg.norm(dense * h, axis=1)) < (band - 1) * h]
+    act = set(map(tuple, ijk))
+    assert all(tuple(p) in act for p in near)
+
+
+def test_culling_keeps_work_near_the_band():
+    imin, imax, h = cube_domain(256)
+    res = voxelise(node("sphere", radius=0.6), imin, imax, h, 3.0)
+    s = res.stats
+    assert s["voxels_evaluated"] <= 3.0 * s["active_voxels"]
+    assert s["voxels_evaluated"] < 0.1 * 257**3  # far from the dense 257^3
+    assert s["cells_culled_inside"] > 0 and s["cells_culled_outside"] > 0
+
+
+def test_work_grows_with_area_not_volume():
+    """Doubling the resolution multiplies evaluated voxels by ~4 (surface), not 8 (volume)."""
+    ev = []
+    for n in (128, 256):
+        imin, imax, h = cube_domain(n)
+        ev.append(voxelise(node("torus", major=0.6, minor=0.2), imin, imax, h, 3.0).stats["voxels_evaluated"])
+    ratio = ev[1] / ev[0]
+    assert 3.0 < ratio < 5.0, ratio
+
+
+def test_inside_tiles_are_inside():
+    imin, imax, h = cube_domain(128)
+    model = node("difference", of=[node("sphere", radius=0.8), node("sphere", radius=0.3)])
+    res = voxelise(model, imin, imax, h, 3.0)
+    assert len(res.inside_boxes) > 0
+    rng = np.random.default_rng(0)
+    for lo, hi in res.inside_boxes:
+        pts = rng.integers(lo, hi + 1, size=(50, 3)) * h
+        pts = np.vstack([pts, lo * h, hi * h])
+        assert np.all(model.evaluate(pts) > 0)
+
+
+def test_proven_outside_cells_hold_no_surface():
+    """Enumeration never drops a cell that contains part of the zero set."""
+    imin, imax, h = cube_domain(128)
+    model = node("torus", major=0.6, minor=0.2, axis="y")
+    lv = enumerate_cells(model, imin, imax, h, 3.0, 4)
+    kept = set(map(tuple, lv.blocks))
+    rng = np.random.default_rng(2)
+    # points on the torus surface
+    u, v = rng.uniform(0, 2 * np.pi, (2, 2000))
+    p = np.stack([(0.6 + 0.2 * np.cos(v)) * np.cos(u), 0.2 * np.sin(v), (0.6 + 0.2 * np.cos(v)) * np.sin(u)], 1)
+    vox = np.round(p / h).astype(np.int64)
+    blocks = (vox // 4) * 4
+    assert all(tuple(b) in kept for b in blocks)
+
+
+def test_vdb_round_trip(tmp_path):
+    imin, imax, h = cube_domain(96)
+    model = node("box", min=(-0.5, -0.4, -0.3), max=(0.5, 0.4, 0.3))
+    res = voxelise(model, imin, imax, h, 3.0)
+    g = frep_to_vdb(res.blocks, res.inside_boxes, "frep")
+    path = tmp_path / "box.vdb"
+    vdb.write(str(path), grids=[g])
+    back = vdb.read(str(path), "frep")
+    assert back.activeVoxelCount() == res.stats["active_voxels"]
+    assert back.transform.voxelSize()[0] == pytest.approx(h)
+    acc = back.getConstAccessor()
+    ijk, vals = res.blocks.active_voxels()
+    for p, v in zip(ijk[::97], vals[::97], strict=True):
+        assert acc.getValue(tuple(int(c) for c in p)) == pytest.approx(v, abs=1e-7)
+        assert acc.isValueOn(tuple(int(c) for c in p))
+    bg = abs(back.background)
+    assert back.background < 0  # outside
+    assert acc.getValue((0, 0, 0)) == pytest.approx(bg) and not acc.isValueOn((0, 0, 0))  # deep inside
+    assert acc.getValue((40, 0, 0)) == pytest.approx(-bg)  # outside
+    # world <-> index as OpenVDB sees it: voxel centres at integer multiples of h
+    ijk0 = back.transform.worldToIndexCellCentered((0.5, 0.0, 0.0))
+    assert tuple(ijk0) == (round(0.5 / h), 0, 0)
+
+
+def test_nonfinite_field_is_reported():
+    from pipeline.nodes.expr import Expr
+    from pipeline.voxelise import NonFiniteField
+
+    imin, imax, h = cube_domain(32)
+    bad = Expr(Expr.Params(formula="1/x - 2"))
+    with pytest.raises(NonFiniteField):
+        voxelise(bad, imin, imax, h, 3.0)

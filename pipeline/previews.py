@@ -127,7 +127,8 @@ def _draw_contours(ax: Any, sl: Slice, kind: str, norm: mcolors.Normalize, ref: 
     if kind == "signed" and sl.values.min() < 0 < sl.values.max():
         ax.contour(H, V, sl.values, levels=[0.0], colors="black", linewidths=1.6)
     elif ref is not None and ref.values.min() < ref_iso < ref.values.max():
-        ax.contour(H, V, ref.values, levels=[ref_iso], colors="black", linewidths=1.2)
+        colour = "white" if kind == "rgb" else "black"  # RGB slices are black where no colour is set
+        ax.contour(H, V, ref.values, levels=[ref_iso], colors=colour, linewidths=1.2)
 
 
 def _draw_slice(ax: Any, sl: Slice, kind: str, cmap: Any, norm: mcolors.Normalize) -> Any:
@@ -167,8 +168,9 @@ def slice_figure(name: str, grid: Any, slices: list[Slice], ref: list[Slice] | N
         bar = fig.colorbar(image, ax=list(axes), shrink=0.9, label=_bar_label(name, kind))
         if kind == "labels" and norm.vmax <= 21:
             bar.set_ticks(np.arange(1, int(norm.vmax - 0.5) + 1))
+    line = "white" if kind == "rgb" else "black"
     fig.suptitle(f"{name}  ({grid.gridClass}, {grid.valueTypeName}): centre slices, "
-                 "black = zero level / surface")
+                 f"{line} = zero level / surface")
     return fig
 
 

@@ -21,3 +21,24 @@ bench: setup
 
 clean:
 	rm -rf $(OUT)/*/ .pytest_cache
+
+# Opens the exported files in ParaView, Blender and Chromium (tests/clients). Installs the
+# programs with apt-get when missing (xvfb too: Debian's ParaView renders offscreen through X).
+CLIENT_PROGRAMS := pvpython:paraview blender:blender chromium:chromium xvfb-run:xvfb
+.PHONY: test-clients
+test-clients: setup
+	@missing=""; \
+	for pair in $(CLIENT_PROGRAMS); do \
+	  command -v "$${pair%%:*}" >/dev/null 2>&1 || missing="$$missing $${pair##*:}"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  if ! command -v apt-get >/dev/null 2>&1; then \
+	    echo "test-clients: SKIPPED: apt-get is not available to install$$missing; install them and rerun"; \
+	    exit 0; \
+	  fi; \
+	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO="sudo"; \
+	  echo "test-clients: apt-get install -y$$missing"; \
+	  $$SUDO apt-get update -qq || exit 1; \
+	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing xauth || exit 1; \
+	fi; \
+	FREPVDB_CLIENTS=1 $(PY) -m pytest -q -p no:cacheprovider tests/clients

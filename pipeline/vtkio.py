@@ -458,3 +458,41 @@ def write_pvd(path: str | os.PathLike, frames: Iterable[tuple[float, str | os.Pa
     with atomic_output(path) as tmp:
         ET.ElementTree(root).write(tmp, encoding="utf-8", xml_declaration=True)
     return {"path": path.name, "kind": "pvd", "frames": count}
+
+
+# --- one call for the export stage ------------------------------------------------------------
+MESH_WRITERS = {"vtp": write_vtp, "ply": write_ply, "obj": write_obj}
+
+
+def write_vtk_outputs(
+    out_dir: str | os.PathLike,
+    name: str,
+    grids: Grids,
+    voxel_size: float,
+    kinds: Iterable[str] = ("vti", "vtp"),
+    max_points: int = DEFAULT_MAX_POINTS,
+    max_cells: int | None = None,
+    adaptivity: float = 0.0,
+) -> tuple[list[dict], SurfaceMesh | None]:
+    """Write ``<out_dir>/<name>.<kind>`` for each kind in vti, vtu, vtp, ply, obj.
+
+    Returns the manifest ``outputs`` entries and the surface mesh (None when no mesh kind was
+    asked for), so previews can reuse it. ValueError when a requested file cannot be made (no
+    active voxels, no grid to mesh, more than ``max_cells`` voxels for the .vtu).
+    """
+    out_dir = Path(out_dir)
+    kinds = list(dict.fromkeys(kinds))
+    unknown = set(kinds) - {"vti", "vtu", *MESH_WRITERS}
+    if unknown:
+        raise ValueError(f"unknown VTK output kind(s) {sorted(unknown)}; use vti, vtu, vtp, ply, obj")
+    entries: list[dict] = []
+    if "vti" in kinds:
+        entries.append(write_vti(out_dir / f"{name}.vti", grids, voxel_size, max_points))
+    if "vtu" in kinds:
+        entries.append(write_vtu(out_dir / f"{name}.vtu", grids, voxel_size, max_cells))
+    mesh = None
+    mesh_kinds = [k for k in kinds if k in MESH_WRITERS]
+    if mesh_kinds:
+        mesh = extract_surface(grids, voxel_size, adaptivity=adaptivity)
+        entries.extend(MESH_WRITERS[k](out_dir / f"{name}.{k}", mesh) for k in mesh_kinds)
+    return entries, mesh

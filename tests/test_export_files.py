@@ -363,7 +363,8 @@ def test_previews_exist_sized_and_not_blank(grids: dict, preview_paths: list[Pat
         img = mpimg.imread(path)[..., :3]
         h, w = img.shape[:2]
         assert (w, h) == ((1500, 520) if path.name.startswith("slices_") else (800, 700))
-        assert len(np.unique(img.reshape(-1, 3), axis=0)) > 50
+        packed = (np.round(img * 255).astype(np.uint32) * [65536, 256, 1]).sum(axis=2)
+        assert len(np.unique(packed)) > 50  # many distinct colours
         assert img.std() > 0.05
     frep = mpimg.imread(preview_paths[0].parent / "slices_frep.png")[..., :3]
     assert (frep.max(axis=2) < 0.1).mean() > 0.002  # the black zero contour is drawn
@@ -389,3 +390,16 @@ def test_report_embeds_previews_and_tables(grids: dict, preview_paths: list[Path
     assert "12 voxels near the medial axis clamped" in text
     assert "spheres.vti" in text and "<h2>Field quality</h2>" in text
     assert "src='file:" not in text and "src=\"http" not in text  # self-contained
+
+
+def test_write_vtk_outputs_names_and_entries(grids: dict, tmp_path: Path) -> None:
+    entries, m = vtkio.write_vtk_outputs(tmp_path, "spheres", grids, VOXEL, kinds=["vti", "vtp", "ply", "obj"])
+    assert [e["path"] for e in entries] == ["spheres.vti", "spheres.vtp", "spheres.ply", "spheres.obj"]
+    assert [e["kind"] for e in entries] == ["vti", "vtp", "ply", "obj"]
+    assert all((tmp_path / e["path"]).stat().st_size > 0 for e in entries)
+    assert m is not None and m.source == "surface" and entries[1]["triangles"] == len(m.triangles)
+    with pytest.raises(ValueError, match="unknown VTK output"):
+        vtkio.write_vtk_outputs(tmp_path, "x", grids, VOXEL, kinds=["stl"])
+    with pytest.raises(ValueError, match="no grid to mesh"):
+        vtkio.write_vtk_outputs(tmp_path, "c", {"component": grids["component"]}, VOXEL, kinds=["vtp"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(e["path"] for e in entries)

@@ -98,17 +98,22 @@ def linear_transform(voxel_size: float):
     return vdb.createLinearTransform(voxelSize=float(voxel_size))
 
 
-def write_blocks(grid, blocks: BlockGrid, fill_inactive: np.ndarray | None = None) -> None:
-    """Copy every block into ``grid`` (its background decides which voxels are inactive).
-
-    Inactive voxels get ``fill_inactive`` per block (scalar per block) or the grid background,
-    so that ``copyFromArray`` marks them inactive (it activates every value that differs from
-    the background).
-    """
+def write_blocks(grid, blocks: BlockGrid) -> None:
+    """Copy every block into ``grid``; inactive voxels are written as the grid's background,
+    so ``copyFromArray`` (which activates every value that differs from the background) leaves
+    them inactive. Leaves that follow each other along z go in one call (a call costs ~20 us)."""
+    if len(blocks.origins) == 0:
+        return
     bg = np.float32(grid.background)
-    for row in range(len(blocks.origins)):
-        arr = np.where(blocks.active[row], blocks.values[row], bg).astype(np.float32)
-        grid.copyFromArray(np.ascontiguousarray(arr), tuple(int(c) for c in blocks.origins[row]))
+    dense = np.where(blocks.active, blocks.values, bg).astype(np.float32)
+    o = blocks.origins
+    brk = np.ones(len(o), bool)  # a run starts where x, y change or z is not the next leaf
+    brk[1:] = (o[1:, 0] != o[:-1, 0]) | (o[1:, 1] != o[:-1, 1]) | (o[1:, 2] != o[:-1, 2] + LEAF)
+    starts = np.flatnonzero(brk)
+    ends = np.append(starts[1:], len(o))
+    for s, e in zip(starts, ends, strict=True):
+        arr = dense[s] if e - s == 1 else np.concatenate(dense[s:e], axis=2)
+        grid.copyFromArray(np.ascontiguousarray(arr), (int(o[s, 0]), int(o[s, 1]), int(o[s, 2])))
 
 
 def frep_to_vdb(blocks: BlockGrid, inside_boxes: np.ndarray, name: str = "frep"):
@@ -131,10 +136,26 @@ def frep_to_vdb(blocks: BlockGrid, inside_boxes: np.ndarray, name: str = "frep")
     grid.signedFloodFill()
     negate_active(grid)
     grid.background = -bg  # swaps +bg <-> -bg on inactive values and tiles
-    for lo, hi in np.asarray(inside_boxes, dtype=np.int64).reshape(-1, 2, 3):
+    for lo, hi in _boxes_to_fill(blocks, inside_boxes):
         grid.fill(tuple(int(c) for c in lo), tuple(int(c) for c in hi), bg, False)
     grid.prune()
     return grid
+
+
+def _boxes_to_fill(blocks: BlockGrid, inside_boxes: np.ndarray) -> np.ndarray:
+    """Inside boxes that need an explicit fill: all tile-sized ones, and the sub-leaf ones whose
+    leaf has no active voxel (inside a leaf with active voxels the flood fill already set them)."""
+    boxes = np.asarray(inside_boxes, dtype=np.int64).reshape(-1, 2, 3)
+    if len(boxes) == 0 or len(blocks.origins) == 0:
+        return boxes
+    lo, hi = boxes[:, 0], boxes[:, 1]
+    leaf = (lo >> LEAF_LOG2) << LEAF_LOG2
+    within_leaf = np.all((hi >> LEAF_LOG2) << LEAF_LOG2 == leaf, axis=1)
+    row = blocks.block_index(leaf)
+    has_active = np.zeros(len(boxes), bool)
+    ok = row >= 0
+    has_active[ok] = blocks.active[row[ok]].reshape(ok.sum(), -1).any(axis=1)
+    return boxes[~(within_leaf & has_active)]
 
 
 def negate_active(grid) -> None:

@@ -21,8 +21,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
-from pipeline.grid import LEAF, LEAF_LOG2, BlockGrid
+from pipeline.grid import LEAF, LEAF_LOG2, BlockGrid, pack_keys
 from pipeline.nodes import Node
 
 BOUND_CHUNK = 200_000  # boxes per affine call (memory ~ 100 bytes x ops x boxes)
@@ -123,37 +124,58 @@ def _children(cells: np.ndarray, size: int, imin: np.ndarray, imax: np.ndarray) 
 def evaluate_blocks(model: Node, origins: np.ndarray, block: int, h: float, t: float) -> np.ndarray:
     """Field values at the voxel centres of every block: (N, b, b, b) float64."""
     b = block
-    local = np.stack(np.meshgrid(*[np.arange(b)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    out = np.empty((len(origins), b * b * b))
+    r = np.arange(b)
+    out = np.empty((len(origins), b, b, b))
     per = max(1, EVAL_CHUNK // (b * b * b))
     for s in range(0, len(origins), per):
         o = origins[s:s + per]
-        pts = ((o[:, None, :] + local[None, :, :]) * h).reshape(-1, 3)
-        out[s:s + per] = model.evaluate(pts, t).reshape(len(o), -1)
-    return out.reshape(len(origins), b, b, b)
+        x = ((o[:, 0, None, None, None] + r[None, :, None, None]) * h)
+        y = ((o[:, 1, None, None, None] + r[None, None, :, None]) * h)
+        z = ((o[:, 2, None, None, None] + r[None, None, None, :]) * h)
+        x, y, z = np.broadcast_arrays(x, y, z)
+        out[s:s + per] = model.evaluate_xyz(x, y, z, t)
+    return out
 
 
 def band_mask(values: np.ndarray, h: float, band: float) -> np.ndarray:
-    """Active voxels of evaluated blocks: |f|/|grad f| <= band*h, or a sign change to a neighbour."""
-    if values.shape[1] > 1:
-        gx, gy, gz = np.gradient(values, h, axis=(1, 2, 3))
-        grad = np.sqrt(gx * gx + gy * gy + gz * gz)
-    else:
-        grad = np.zeros_like(values)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        near = np.abs(values) <= band * h * grad
-    return near | _sign_change(values)
+    """Active voxels of evaluated blocks: |f|/|grad f| <= band*h, or a sign change to a neighbour.
+
+    The gradient is by central differences inside a block and one-sided at its faces (first
+    order is enough to decide band membership); Numba, one pass over the blocks.
+    """
+    return _band_kernel(np.ascontiguousarray(values, dtype=np.float64), float(h), float(band))
 
 
-def _sign_change(v: np.ndarray) -> np.ndarray:
-    pos = v > 0
-    out = v == 0
-    for axis in (1, 2, 3):
-        a = np.swapaxes(pos, 0, axis)
-        o = np.swapaxes(out, 0, axis)
-        diff = a[1:] != a[:-1]
-        o[1:] |= diff
-        o[:-1] |= diff
+@njit(cache=True)
+def _band_kernel(v: np.ndarray, h: float, band: float) -> np.ndarray:
+    n, b = v.shape[0], v.shape[1]
+    out = np.zeros(v.shape, dtype=np.bool_)
+    lim = band * h
+    for q in range(n):
+        for i in range(b):
+            for j in range(b):
+                for k in range(b):
+                    f = v[q, i, j, k]
+                    g2 = 0.0
+                    change = f == 0.0
+                    for axis in range(3):
+                        lo_i, lo_j, lo_k, hi_i, hi_j, hi_k = i, j, k, i, j, k
+                        c = i if axis == 0 else (j if axis == 1 else k)
+                        if axis == 0:
+                            lo_i, hi_i = max(i - 1, 0), min(i + 1, b - 1)
+                        elif axis == 1:
+                            lo_j, hi_j = max(j - 1, 0), min(j + 1, b - 1)
+                        else:
+                            lo_k, hi_k = max(k - 1, 0), min(k + 1, b - 1)
+                        span = (min(c + 1, b - 1) - max(c - 1, 0)) * h
+                        a1 = v[q, lo_i, lo_j, lo_k]
+                        a2 = v[q, hi_i, hi_j, hi_k]
+                        if span > 0:
+                            d = (a2 - a1) / span
+                            g2 += d * d
+                        if (a1 > 0) != (f > 0) or (a2 > 0) != (f > 0):
+                            change = True
+                    out[q, i, j, k] = change or abs(f) <= lim * np.sqrt(g2)
     return out
 
 
@@ -195,9 +217,14 @@ def voxelise(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: fl
 
 
 def _in_domain(blocks: np.ndarray, b: int, imin: np.ndarray, imax: np.ndarray) -> np.ndarray:
+    """Voxels of each block inside the domain's index box (only boundary blocks are partial)."""
+    valid = np.ones((len(blocks), b, b, b), bool)
+    edge = np.flatnonzero(np.any(blocks < imin, axis=1) | np.any(blocks + b - 1 > imax, axis=1))
     r = np.arange(b)
-    ok = [(blocks[:, a, None] + r >= imin[a]) & (blocks[:, a, None] + r <= imax[a]) for a in range(3)]
-    return ok[0][:, :, None, None] & ok[1][:, None, :, None] & ok[2][:, None, None, :]
+    for n in edge:
+        ok = [(blocks[n, a] + r >= imin[a]) & (blocks[n, a] + r <= imax[a]) for a in range(3)]
+        valid[n] = ok[0][:, None, None] & ok[1][None, :, None] & ok[2][None, None, :]
+    return valid
 
 
 def _background(active_vals: np.ndarray, band: float, h: float) -> float:
@@ -213,29 +240,39 @@ def _assemble_leaves(blocks, b, vals, active, valid, inside_levels, h, bg) -> Bl
     if len(blocks) == 0:
         return BlockGrid(h, -bg)
     leaf_of = (blocks >> LEAF_LOG2) << LEAF_LOG2
-    leaves, inv = np.unique(leaf_of, axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    L = len(leaves)
+    keys, first, rows = np.unique(pack_keys(leaf_of), return_index=True, return_inverse=True)
+    L = len(keys)
     values = np.full((L, LEAF, LEAF, LEAF), -bg, np.float32)
     act = np.zeros((L, LEAF, LEAF, LEAF), bool)
-    off = blocks - leaf_of
-    grid = BlockGrid(h, -bg, leaves, values, act)  # sorts leaves; re-find rows below
-    rows = grid.block_index(leaf_of)
-    r = np.arange(b)
-    I = off[:, 0, None, None, None] + r[None, :, None, None]
-    J = off[:, 1, None, None, None] + r[None, None, :, None]
-    K = off[:, 2, None, None, None] + r[None, None, None, :]
-    R, I, J, K = np.broadcast_arrays(rows[:, None, None, None], I, J, K)
-    grid.values[R, I, J, K] = np.where(valid, vals, -bg).astype(np.float32)
-    grid.active[R, I, J, K] = active
+    filled = np.where(valid, vals, -bg)
+    _scatter(values, act, rows.reshape(-1), blocks - leaf_of, filled, active)
     for origins, size in inside_levels:
         if size >= LEAF or len(origins) == 0:
             continue
-        lrow = grid.block_index((origins >> LEAF_LOG2) << LEAF_LOG2)
-        ok = lrow >= 0
-        for o, row in zip(origins[ok] - ((origins[ok] >> LEAF_LOG2) << LEAF_LOG2), lrow[ok], strict=True):
-            grid.values[row, o[0]:o[0] + size, o[1]:o[1] + size, o[2]:o[2] + size] = bg
-    return grid
+        lkeys = pack_keys((origins >> LEAF_LOG2) << LEAF_LOG2)
+        pos = np.minimum(np.searchsorted(keys, lkeys), L - 1)
+        ok = keys[pos] == lkeys
+        _fill_cells(values, pos[ok], origins[ok] - ((origins[ok] >> LEAF_LOG2) << LEAF_LOG2), size, bg)
+    return BlockGrid(h, -bg, leaf_of[first], values, act)  # keys are sorted: rows stay valid
+
+
+@njit(cache=True)
+def _scatter(values, act, rows, offs, vals, active):
+    b = vals.shape[1]
+    for n in range(len(rows)):
+        r, oi, oj, ok = rows[n], offs[n, 0], offs[n, 1], offs[n, 2]
+        for i in range(b):
+            for j in range(b):
+                for k in range(b):
+                    values[r, oi + i, oj + j, ok + k] = vals[n, i, j, k]
+                    act[r, oi + i, oj + j, ok + k] = active[n, i, j, k]
+
+
+@njit(cache=True)
+def _fill_cells(values, rows, offs, size, bg):
+    for n in range(len(rows)):
+        r, oi, oj, ok = rows[n], offs[n, 0], offs[n, 1], offs[n, 2]
+        values[r, oi:oi + size, oj:oj + size, ok:ok + size] = bg
 
 
 def _inside_boxes(inside_levels, imin, imax) -> np.ndarray:

@@ -84,6 +84,12 @@ class Node(ABC):
             out = self.field(p[:, 0], p[:, 1], p[:, 2], float(t))
         return np.broadcast_to(np.asarray(out, dtype=np.float64), (len(p),)).copy()
 
+    def evaluate_xyz(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """Field values at points given as three coordinate arrays of one shape."""
+        with np.errstate(all="ignore"):
+            out = self.field(x, y, z, float(t))
+        return np.broadcast_to(np.asarray(out, dtype=np.float64), np.shape(x))
+
     def bound_form(self, lo: np.ndarray, hi: np.ndarray, t: float = 0.0) -> AffineForm:
         """Revised affine form of the field over boxes lo..hi (B,3)."""
         x, y, z = AffineForm.coordinates(lo, hi)

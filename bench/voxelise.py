@@ -1,0 +1,137 @@
+"""Benchmark: sparse voxelise vs dense NumPy evaluation and OpenVDB AX, plus a scaling table.
+
+    .venv/bin/python bench/voxelise.py [--quick]
+
+1. Sparse voxelise (affine culling + block evaluation + VDB build) vs dense NumPy evaluation
+   of the same model on every voxel of the domain, at 256^3 and 512^3: time, voxels evaluated.
+2. The same field through OpenVDB AX (`pyopenvdb.ax`, C++ JIT over the same active voxels)
+   as a throughput ceiling for per-voxel evaluation.
+3. Scaling 128^3 .. 1024^3 for a sphere: work should grow ~4x per doubling (surface area),
+   not 8x (volume). Peak memory of each run is measured in a fresh subprocess.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from pipeline.grid import frep_to_vdb, vdb  # noqa: E402
+from pipeline.nodes import REGISTRY  # noqa: E402
+from pipeline.voxelise import voxelise  # noqa: E402
+
+MODELS = {
+    # name: (node factory, AX expression of the same field)
+    "sphere": (lambda: REGISTRY["sphere"](REGISTRY["sphere"].Params(radius=0.6)),
+               "@frep = 0.6 - length(getvoxelpws());"),
+    "torus": (lambda: REGISTRY["torus"](REGISTRY["torus"].Params(major=0.6, minor=0.2)),
+              "vec3f p = getvoxelpws(); float q = sqrt(p.x*p.x + p.y*p.y) - 0.6;"
+              " @frep = 0.2 - sqrt(q*q + p.z*p.z);"),
+}
+
+
+def domain(n: int):
+    h = 2.0 / n
+    return np.array([-n // 2] * 3), np.array([n // 2] * 3), h
+
+
+def run_sparse(model_name: str, n: int) -> dict:
+    model = MODELS[model_name][0]()
+    imin, imax, h = domain(n)
+    t0 = time.perf_counter()
+    res = voxelise(model, imin, imax, h, 3.0, 4)
+    t1 = time.perf_counter()
+    grid = frep_to_vdb(res.blocks, res.inside_boxes, "frep")
+    t2 = time.perf_counter()
+    return {"model": model_name, "n": n, "enumerate_eval_s": t1 - t0, "vdb_s": t2 - t1, "total_s": t2 - t0,
+            "voxels_evaluated": res.stats["voxels_evaluated"], "active": res.stats["active_voxels"],
+            "cells_visited": res.stats["cells_visited"], "grid_active": int(grid.activeVoxelCount()),
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def run_dense(model_name: str, n: int) -> dict:
+    """Every voxel of the domain evaluated with the same NumPy field code, slab by slab."""
+    model = MODELS[model_name][0]()
+    imin, imax, h = domain(n)
+    ax = np.arange(imin[0], imax[0] + 1) * h
+    t0 = time.perf_counter()
+    total = 0
+    Y, Z = np.meshgrid(ax, ax, indexing="ij")
+    yz = np.stack([Y.ravel(), Z.ravel()], 1)
+    for x in ax:  # one x-slab at a time keeps memory bounded
+        pts = np.column_stack([np.full(len(yz), x), yz])
+        model.evaluate(pts)
+        total += len(pts)
+    return {"model": model_name, "n": n, "dense_s": time.perf_counter() - t0, "voxels_evaluated": total}
+
+
+def run_ax(model_name: str, n: int) -> dict:
+    """OpenVDB AX over the active voxels of our frep grid: C++ per-voxel throughput."""
+    model = MODELS[model_name][0]()
+    imin, imax, h = domain(n)
+    res = voxelise(model, imin, imax, h, 3.0, 4)
+    grid = frep_to_vdb(res.blocks, res.inside_boxes, "frep")
+    ref = {tuple(map(int, p)): v for p, v in zip(*res.blocks.active_voxels(), strict=True)}
+    t0 = time.perf_counter()
+    vdb.ax(MODELS[model_name][1], grid)
+    dt = time.perf_counter() - t0
+    acc = grid.getConstAccessor()
+    sample = list(ref.items())[:: max(1, len(ref) // 200)]
+    err = max(abs(acc.getValue(k) - v) for k, v in sample)
+    return {"model": model_name, "n": n, "ax_s": dt, "ax_voxels": int(grid.activeVoxelCount()), "ax_max_diff": err}
+
+
+def in_subprocess(fn: str, model: str, n: int) -> dict:
+    out = subprocess.run([sys.executable, __file__, "--one", fn, model, str(n)], capture_output=True, text=True,
+                         check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="smaller sizes (for a smoke run)")
+    ap.add_argument("--one", nargs=3, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.one:
+        fn, model, n = args.one
+        print(json.dumps({"sparse": run_sparse, "dense": run_dense, "ax": run_ax}[fn](model, int(n))))
+        return
+    sizes = [128, 256] if args.quick else [256, 512]
+    print("## Sparse voxelise vs dense NumPy vs OpenVDB AX (band 3, block 4)\n")
+    print("| model | n^3 | sparse s | dense s | dense/sparse | evaluated sparse | evaluated dense | evaluated/active |"
+          " AX s (active voxels) | sparse eval per voxel vs AX |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for model in MODELS:
+        for n in sizes:
+            s = in_subprocess("sparse", model, n)
+            d = in_subprocess("dense", model, n)
+            a = in_subprocess("ax", model, n)
+            ns_sparse = s["enumerate_eval_s"] / s["voxels_evaluated"] * 1e9
+            ns_ax = a["ax_s"] / a["ax_voxels"] * 1e9
+            print(f"| {model} | {n} | {s['total_s']:.2f} | {d['dense_s']:.2f} | {d['dense_s'] / s['total_s']:.1f}x |"
+                  f" {s['voxels_evaluated']:,} | {d['voxels_evaluated']:,} | {s['voxels_evaluated'] / s['active']:.2f} |"
+                  f" {a['ax_s']:.3f} ({a['ax_voxels']:,}) | {ns_sparse:.0f} ns vs {ns_ax:.0f} ns |")
+    print("\n## Scaling (sphere r = 0.6, band 3): cost per doubling should be ~4x (area), not 8x (volume)\n")
+    print("| n^3 | total s | x per doubling | voxels evaluated | x per doubling | active | cells visited | peak RSS MiB |")
+    print("|---|---|---|---|---|---|---|---|")
+    prev = None
+    for n in ([64, 128, 256] if args.quick else [128, 256, 512, 1024]):
+        s = in_subprocess("sparse", "sphere", n)
+        tr = f"{s['total_s'] / prev['total_s']:.1f}" if prev else "-"
+        vr = f"{s['voxels_evaluated'] / prev['voxels_evaluated']:.2f}" if prev else "-"
+        print(f"| {n} | {s['total_s']:.2f} | {tr} | {s['voxels_evaluated']:,} | {vr} | {s['active']:,} |"
+              f" {s['cells_visited']:,} | {s['peak_rss_mb']:.0f} |")
+        prev = s
+
+
+if __name__ == "__main__":
+    main()

@@ -394,10 +394,8 @@ def _split_polygons(polys: Polygons, s_piece: np.ndarray, spanning: np.ndarray,
     for idx in np.nonzero(spanning[polys.owner])[0]:
         s = np.where(np.abs(s_piece[idx]) <= eps, 0.0, s_piece[idx])
         v, own = polys.pieces[idx], polys.owner[idx]
-        if s.min() >= 0 or s.max() <= 0:
-            parts = ([v], []) if s.max() > 0 else ([], [v])
-        else:
-            parts = _clip_simplex(v, s)
+        one_side = s.min() >= 0 or s.max() <= 0
+        parts = (([v], []) if s.max() > 0 else ([], [v])) if one_side else _clip_simplex(v, s)
         pp += parts[0]
         po += [own] * len(parts[0])
         nps += parts[1]

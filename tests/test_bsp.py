@@ -67,7 +67,7 @@ def _inside_2d(loops: list[np.ndarray], p: np.ndarray) -> np.ndarray:
 def _dist_to_segments_2d(loops: list[np.ndarray], p: np.ndarray) -> np.ndarray:
     best = np.full(len(p), np.inf)
     for loop in loops:
-        for a, b in zip(loop, np.roll(loop, -1, axis=0)):
+        for a, b in zip(loop, np.roll(loop, -1, axis=0), strict=True):
             t = np.clip(((p - a) @ (b - a)) / ((b - a) @ (b - a)), 0, 1)
             best = np.minimum(best, np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1))
     return best
@@ -271,7 +271,7 @@ def test_2d_sign_and_zero_set(family: str, planes: str) -> None:
         p = p[_dist_to_segments_2d(loops, p) > 1e-6]
         assert np.all((field.evaluate(p) > 0) == _inside_2d(loops, p))
         t = np.random.default_rng(7).random(200)[:, None]
-        on = np.concatenate([a + t * (b - a) for lp in loops for a, b in zip(lp, np.roll(lp, -1, 0))])
+        on = np.concatenate([a + t * (b - a) for lp in loops for a, b in zip(lp, np.roll(lp, -1, 0), strict=True)])
         assert np.abs(field.evaluate(on)).max() < 1e-12
 
 

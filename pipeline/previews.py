@@ -26,6 +26,7 @@ from pipeline.vtkio import (
     SurfaceMesh,
     default_isovalue,
     extract_surface,
+    face_normals,
     is_vector,
     mesh_polydata,
     pick_surface_source,
@@ -256,11 +257,10 @@ def _face_colours(normals: np.ndarray, labels: np.ndarray | None, light: np.ndar
 
 def _visible_faces(points: np.ndarray, tris: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray]:
     """Front-facing triangles sorted back to front (painter's algorithm), and their unit normals."""
-    p = points[tris].astype(np.float64)
-    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    n = face_normals(points, tris)
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
     front = np.flatnonzero(n @ view.eye > 0.0)
-    order = front[np.argsort(p[front].mean(axis=1) @ view.eye)]
+    order = front[np.argsort(points[tris[front]].astype(np.float64).mean(axis=1) @ view.eye)]
     return order, n[order]
 
 

@@ -34,6 +34,20 @@ _CORNERS = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)],
 Grids = Mapping[str, Any]
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (N,3) arrays (explicit: several times faster than np.cross)."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+                     a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+
+
+def face_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unnormalised triangle normals (length = twice the area), float64."""
+    p = points.astype(np.float64)
+    a = p[triangles[:, 0]]
+    return cross(p[triangles[:, 1]] - a, p[triangles[:, 2]] - a)
+
+
 # --- reading grids in bulk ----------------------------------------------------------------
 def is_vector(grid: Any) -> bool:
     """True for Vec3S grids (values are 3-tuples)."""
@@ -217,7 +231,7 @@ class SurfaceMesh:
     def signed_volume(self) -> float:
         """Enclosed volume (positive when outward-oriented and closed)."""
         a, b, c = (self.points[self.triangles[:, n]].astype(np.float64) for n in range(3))
-        return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+        return float(np.einsum("ij,ij->i", a, cross(b, c)).sum() / 6.0)
 
 
 def pick_surface_source(grids: Grids) -> str:
@@ -255,11 +269,10 @@ def default_isovalue(name: str, grid: Any) -> float:
 
 def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals."""
-    p = points.astype(np.float64)
-    face = np.cross(p[triangles[:, 1]] - p[triangles[:, 0]], p[triangles[:, 2]] - p[triangles[:, 0]])
-    acc = np.zeros_like(p)
-    for n in range(3):
-        np.add.at(acc, triangles[:, n], face)
+    face = face_normals(points, triangles)
+    corners = triangles.reshape(-1)
+    acc = np.stack([np.bincount(corners, np.repeat(face[:, c], 3), minlength=len(points)) for c in range(3)],
+                   axis=1)
     length = np.linalg.norm(acc, axis=1, keepdims=True)
     return (acc / np.where(length > 0, length, 1.0)).astype(np.float32)
 
@@ -288,11 +301,12 @@ def weld(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndar
     """
     if len(points) == 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64)
-    uniq, inverse = np.unique(points, axis=0, return_inverse=True)
+    points = np.ascontiguousarray(points, dtype=np.float32)
+    rows = points.view(np.dtype((np.void, points.dtype.itemsize * 3))).reshape(-1)
+    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
+    uniq = points[first]
     tris = inverse.reshape(-1)[triangles]
-    p = uniq.astype(np.float64)
-    area2 = np.linalg.norm(np.cross(p[tris[:, 1]] - p[tris[:, 0]], p[tris[:, 2]] - p[tris[:, 0]]), axis=1)
-    tris = tris[area2 > 0.0]
+    tris = tris[np.abs(face_normals(uniq, tris)).max(axis=1) > 0.0]
     used = np.unique(tris)
     remap = np.full(len(uniq), -1, np.int64)
     remap[used] = np.arange(len(used))

@@ -1,0 +1,110 @@
+"""The ``mesh`` and ``grid`` nodes inside model trees: values, signs and rigorous bounds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.cli import main
+from pipeline.grid import vdb
+from pipeline.nodes import REGISTRY
+
+
+def node(kind, **params):
+    cls = REGISTRY[kind]
+    return cls(cls.Params.model_validate(params))
+
+
+@pytest.fixture(scope="module")
+def box_mesh(tmp_path_factory):
+    path = tmp_path_factory.mktemp("m") / "box.off"
+    trimesh.creation.box(extents=(1.0, 0.6, 0.4)).export(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def sphere_vdb(tmp_path_factory):
+    path = tmp_path_factory.mktemp("g") / "ls.vdb"
+    g = vdb.createLevelSetSphere(radius=0.5, center=(0.1, 0, 0), voxelSize=0.02, halfWidth=3.0)
+    g.name = "surface"
+    vdb.write(str(path), grids=[g])
+    return path
+
+
+def test_mesh_node_sign_matches_containment(box_mesh):
+    m = node("mesh", path=str(box_mesh), rfunc="r0")
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-0.8, 0.8, (3000, 3))
+    inside = np.all(np.abs(pts) < [0.5, 0.3, 0.2], axis=1)
+    v = m.evaluate(pts)
+    assert np.all((v > 0) == inside)
+    assert m.report.watertight and m.stats["planes"] == 6
+
+
+@settings(max_examples=40, deadline=None)
+@given(c=st.tuples(*[st.floats(-0.8, 0.6)] * 3), w=st.floats(0.01, 0.8), angle=st.floats(-180, 180))
+def test_mesh_node_bound_encloses_under_rotation(box_mesh, c, w, angle):
+    m = node("rotate", angle=angle, axis=(1, 1, 0), of=node("mesh", path=str(box_mesh), rfunc="sardf"))
+    lo = np.array(c)
+    hi = lo + w
+    pts = lo + np.random.default_rng(1).random((300, 3)) * w
+    flo, fhi = m.bound(lo[None], hi[None])
+    v = m.evaluate(pts)
+    assert v.min() >= flo[0] - 1e-12 and v.max() <= fhi[0] + 1e-12
+
+
+def test_grid_node_reads_level_set_as_frep(sphere_vdb):
+    g = node("grid", path=str(sphere_vdb))
+    pts = np.array([[0.1, 0, 0], [0.1 + 0.45, 0, 0], [0.1 + 0.55, 0, 0], [2, 2, 2]])
+    v = g.evaluate(pts)
+    assert v[0] > 0 and v[1] == pytest.approx(0.05, abs=0.01) and v[2] == pytest.approx(-0.05, abs=0.01) and v[3] < 0
+
+
+@settings(max_examples=40, deadline=None)
+@given(c=st.tuples(*[st.floats(-0.7, 0.7)] * 3), w=st.floats(0.005, 0.6))
+def test_grid_node_bound_encloses(sphere_vdb, c, w):
+    g = node("grid", path=str(sphere_vdb))
+    lo = np.array(c)
+    pts = lo + np.random.default_rng(2).random((300, 3)) * w
+    flo, fhi = g.bound(lo[None], (lo + w)[None])
+    v = g.evaluate(pts)
+    assert v.min() >= flo[0] - 1e-12 and v.max() <= fhi[0] + 1e-12
+
+
+def test_grid_and_mesh_in_one_run(tmp_path, box_mesh, sphere_vdb, capsys):
+    cfg = tmp_path / "mix.yaml"
+    cfg.write_text(f"""name: mix
+domain: {{bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 64}}
+model:
+  union:
+    - mesh: {{path: {box_mesh}}}
+    - grid: {{path: {sphere_vdb}}}
+stages:
+  - voxelise: {{band: 3}}
+  - export: {{vdb: true}}
+""")
+    assert main(["run", str(cfg), "--out", str(tmp_path / "o")]) == 0
+    g = vdb.read(str(tmp_path / "o" / "mix" / "mix.vdb"), "frep")
+    acc = g.getConstAccessor()
+    h = g.transform.voxelSize()[0]
+    assert acc.getValue((round(0.45 / h), 0, 0)) > 0  # inside the box
+    assert acc.getValue((round(-0.9 / h), 0, 0)) < 0
+
+
+@pytest.mark.parametrize("content, message", [
+    (None, "mesh file not found"), ("OFF\n0 0 0\n", "no faces"), ("garbage", ""),
+])
+def test_bad_mesh_is_exit_2_with_line(tmp_path, capsys, content, message):
+    mesh = tmp_path / "m.off"
+    if content is not None:
+        mesh.write_text(content)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"name: c\ndomain: {{bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 16}}\nmodel:\n"
+                   f"  mesh: {{path: {mesh.name}}}\nstages:\n  - voxelise: {{}}\n")
+    assert main(["run", str(cfg), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "c.yaml:4 model.mesh:" in err and "m.off" in err and message in err
+    assert "Traceback" not in err and not (tmp_path / "o" / "c").exists()

@@ -69,9 +69,9 @@ class GridNode(Node):
         return vals.reshape(shape)
 
     def _bound_form(self, x, y, z) -> AffineForm:
-        forms = [v if isinstance(v, AffineForm) else None for v in (x, y, z)]
-        los = np.stack([f.lo if f is not None else np.full(len(x), v) for f, v in zip(forms, (x, y, z), strict=True)], 1)
-        his = np.stack([f.hi if f is not None else np.full(len(x), v) for f, v in zip(forms, (x, y, z), strict=True)], 1)
+        n = len(x)
+        los = np.stack([v.lo if isinstance(v, AffineForm) else np.full(n, v) for v in (x, y, z)], 1)
+        his = np.stack([v.hi if isinstance(v, AffineForm) else np.full(n, v) for v in (x, y, z)], 1)
         corners = np.stack([np.where(np.array(m)[None, :], his, los) for m in np.ndindex(2, 2, 2)], 1)
         idx = self._to_index(corners.reshape(-1, 3)).reshape(len(x), 8, 3)
         ilo = np.floor(idx.min(axis=1)).astype(np.int64)

@@ -10,6 +10,7 @@ the solid is rendered shaded in ``previews/surface_mesh.png``.
 from __future__ import annotations
 
 import os
+import re
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -46,7 +47,6 @@ with warnings.catch_warnings():  # a system matplotlib's mpl_toolkits may shadow
 
 AXES = "xyz"
 MAX_PIXELS = 600  # longest side of a slice image before it is strided
-PAD = 2  # voxels around the active bounding box
 VIEW_AZIM, VIEW_ELEV = -60.0, 25.0  # degrees, as matplotlib's 3D default view
 MAX_FACES = 20_000
 SURFACE_PNG = "surface_mesh.png"
@@ -90,14 +90,24 @@ def centre_slices(grid: Any, lo: np.ndarray, hi: np.ndarray, voxel_size: float) 
     return out
 
 
-def _kind(name: str, grid: Any, slices: list[Slice]) -> str:
+def value_range(grid: Any, slices: list[Slice]) -> tuple[float, float]:
+    """Min/max of the grid's active values (the slices' values when nothing is active).
+
+    Colour limits follow the active values, so a large background (e.g. far-field values of an
+    HFRep grid) saturates instead of washing out the field.
+    """
+    if grid.activeVoxelCount() > 0:
+        lo, hi = grid.evalMinMax()
+        return float(lo), float(hi)
+    return min(float(s.values.min()) for s in slices), max(float(s.values.max()) for s in slices)
+
+
+def _kind(name: str, grid: Any, vrange: tuple[float, float]) -> str:
     if is_vector(grid):
         return "rgb"
     if name == "component":
         return "labels"
-    lo = min(float(s.values.min()) for s in slices)
-    hi = max(float(s.values.max()) for s in slices)
-    return "signed" if lo < 0.0 < hi else "sequential"
+    return "signed" if vrange[0] < 0.0 < vrange[1] else "sequential"
 
 
 def _label_cmap(n: int) -> tuple[mcolors.Colormap, mcolors.Normalize]:
@@ -106,15 +116,20 @@ def _label_cmap(n: int) -> tuple[mcolors.Colormap, mcolors.Normalize]:
     return cmap, mcolors.BoundaryNorm(np.arange(0.5, max(n, 1) + 1.5), cmap.N)
 
 
-def _norm_cmap(kind: str, slices: list[Slice]) -> tuple[mcolors.Colormap | str, mcolors.Normalize]:
-    values = np.concatenate([s.values.ravel() for s in slices])
+def _norm_cmap(kind: str, vrange: tuple[float, float]) -> tuple[mcolors.Colormap | str, mcolors.Normalize]:
+    lo, hi = vrange
     if kind == "labels":
-        return _label_cmap(int(np.rint(values.max())))
-    if kind == "signed":
-        m = float(np.abs(values).max())
-        return "RdBu_r", mcolors.Normalize(-m, m)
-    lo, hi = float(values.min()), float(values.max())
+        return _label_cmap(int(np.rint(hi)))
+    if kind == "signed":  # each sign gets the full half of the map, so both sides stay readable
+        return "RdBu_r", mcolors.TwoSlopeNorm(vcenter=0.0, vmin=lo, vmax=hi)
     return "viridis", mcolors.Normalize(lo, hi if hi > lo else lo + 1.0)
+
+
+def isolevels(kind: str, lo: float, hi: float, per_side: int = 5) -> np.ndarray:
+    """Isoline values: evenly spaced, for signed fields on each side of 0 (0 itself is drawn black)."""
+    if kind == "signed":
+        return np.concatenate([np.linspace(lo, 0.0, per_side + 1)[1:-1], np.linspace(0.0, hi, per_side + 1)[1:-1]])
+    return np.linspace(lo, hi, 2 * per_side + 1)[1:-1]
 
 
 def _draw_contours(ax: Any, sl: Slice, kind: str, norm: mcolors.Normalize, ref: Slice | None,
@@ -122,8 +137,7 @@ def _draw_contours(ax: Any, sl: Slice, kind: str, norm: mcolors.Normalize, ref: 
     """Grey isolines of the field, its zero contour black; else the reference surface in black."""
     H, V = np.meshgrid(sl.h, sl.v, indexing="ij")
     if kind in ("signed", "sequential") and min(sl.values.shape) > 1:
-        levels = np.linspace(norm.vmin, norm.vmax, 13)[1:-1]
-        levels = levels[np.abs(levels) > 1e-9 * max(abs(norm.vmin), abs(norm.vmax))]
+        levels = isolevels(kind, norm.vmin, norm.vmax)
         ax.contour(H, V, sl.values, levels=levels, colors="0.35", linewidths=0.5, alpha=0.7)
     if kind == "signed" and sl.values.min() < 0 < sl.values.max():
         ax.contour(H, V, sl.values, levels=[0.0], colors="black", linewidths=1.6)
@@ -152,8 +166,9 @@ def _save(fig: Figure, path: Path, dpi: int) -> None:
 def slice_figure(name: str, grid: Any, slices: list[Slice], ref: list[Slice] | None, ref_iso: float,
                  ) -> Figure:
     """Three slice panels of one grid with a shared colour bar."""
-    kind = _kind(name, grid, slices)
-    cmap, norm = _norm_cmap(kind, slices) if kind != "rgb" else (None, mcolors.Normalize())
+    vrange = (0.0, 1.0) if is_vector(grid) else value_range(grid, slices)
+    kind = _kind(name, grid, vrange)
+    cmap, norm = _norm_cmap(kind, vrange) if kind != "rgb" else (None, mcolors.Normalize())
     fig = Figure(figsize=(15, 5.2), layout="constrained")
     axes = fig.subplots(1, 3)
     image = None
@@ -185,17 +200,22 @@ def write_slice_previews(out_dir: str | os.PathLike, grids: Mapping[str, Any], v
     box = union_active_bbox(grids.values())
     if box is None:
         return []
-    lo, hi = box[0] - PAD, box[1] + PAD
+    lo, hi = box
     ref_name = _reference(grids)
     ref = centre_slices(grids[ref_name], lo, hi, voxel_size) if ref_name else None
     ref_iso = default_isovalue(ref_name, grids[ref_name]) if ref_name else 0.0
     paths = []
     for name, grid in grids.items():
         fig = slice_figure(name, grid, centre_slices(grid, lo, hi, voxel_size), ref, ref_iso)
-        path = Path(out_dir) / f"slices_{name}.png"
+        path = Path(out_dir) / f"slices_{safe_name(name)}.png"
         _save(fig, path, dpi)
         paths.append(path)
     return paths
+
+
+def safe_name(name: str) -> str:
+    """A grid name usable as part of a file name (anything but letters, digits, ._- becomes _)."""
+    return re.sub(r"[^A-Za-z0-9._-]", "_", name) or "grid"
 
 
 def _reference(grids: Mapping[str, Any]) -> str | None:

@@ -349,6 +349,15 @@ def test_pvd_frames_resolve(grids: dict, tmp_path: Path) -> None:
         assert image.GetPointData().GetArray("frep") is not None
 
 
+def test_failed_vtk_write_keeps_previous_file(grids: dict, tmp_path: Path) -> None:
+    path = tmp_path / "s.vti"
+    vtkio.write_vti(path, {"frep": grids["frep"]}, VOXEL)
+    before = path.read_bytes()
+    with pytest.raises(ValueError, match="no grid has active voxels"):
+        vtkio.write_vti(path, {"empty": vdb.FloatGrid()}, VOXEL)
+    assert path.read_bytes() == before and _no_temp_files(tmp_path)
+
+
 # --- previews and report ---------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def preview_paths(grids: dict, mesh: vtkio.SurfaceMesh, tmp_path_factory) -> list[Path]:
@@ -368,10 +377,17 @@ def test_previews_exist_sized_and_not_blank(grids: dict, preview_paths: list[Pat
         assert img.std() > 0.05
     frep = mpimg.imread(preview_paths[0].parent / "slices_frep.png")[..., :3]
     assert (frep.max(axis=2) < 0.1).mean() > 0.002  # the black zero contour is drawn
+    hfrep = mpimg.imread(preview_paths[0].parent / "slices_hfrep.png")[..., :3]
+    red = (hfrep[..., 0] > 0.6) & (hfrep[..., 2] < 0.45)
+    assert red.mean() > 0.01  # inside is visibly red although the background is -10
     surface = mpimg.imread(preview_paths[0].parent / previews.SURFACE_PNG)[..., :3]
     blue = (surface[..., 2] > surface[..., 0] + 0.1).mean()
     orange = (surface[..., 0] > surface[..., 2] + 0.2).mean()
     assert blue > 0.02 and orange > 0.02  # both components coloured
+
+
+def test_preview_file_names_are_safe() -> None:
+    assert previews.safe_name("color") == "color" and previews.safe_name("a/b c") == "a_b_c"
 
 
 def test_report_embeds_previews_and_tables(grids: dict, preview_paths: list[Path]) -> None:

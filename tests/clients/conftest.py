@@ -7,56 +7,15 @@ They are not part of `make test`: nothing here is collected unless FREPVDB_CLIEN
 from __future__ import annotations
 
 import os
-import shutil
-import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 ENABLED = os.environ.get("FREPVDB_CLIENTS") == "1"
 collect_ignore_glob = [] if ENABLED else ["test_*.py"]
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))  # tests/: the sample scene of test_export_files
-
-TIMEOUT = 300  # seconds per program run
-
-
-def require(program: str) -> str:
-    """Absolute path of ``program``; fails (not skips) when absent: `make test-clients` installs it."""
-    path = shutil.which(program)
-    if path is None:
-        pytest.fail(f"{program} is not installed; run `make test-clients` (it installs paraview, blender, "
-                    f"chromium and xvfb with apt-get)")
-    return path
-
-
-def run(cmd: list[str], cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
-    """Run a client program; on a non-zero exit show its output in the failure."""
-    proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=TIMEOUT,
-                          env={**os.environ, **(env or {})})
-    if proc.returncode != 0:
-        pytest.fail(f"{cmd[0]} exited {proc.returncode}\nstdout:\n{proc.stdout[-4000:]}\n"
-                    f"stderr:\n{proc.stderr[-4000:]}")
-    return proc
-
-
-def with_display(cmd: list[str]) -> list[str]:
-    """Prefix ``xvfb-run`` when there is no X display (Debian's ParaView renders through X only)."""
-    if os.environ.get("DISPLAY"):
-        return cmd
-    return [require("xvfb-run"), "-a", "-s", "-screen 0 1280x1024x24", *cmd]
-
-
-def foreground_fraction(png: Path) -> float:
-    """Fraction of pixels that differ clearly from the image's corner (background) colour."""
-    import matplotlib.image as mpimg
-
-    img = mpimg.imread(png)[..., :3].astype(np.float64)
-    background = img[0, 0]
-    return float((np.abs(img - background).max(axis=2) > 0.08).mean())
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # tests/: the sample scene
 
 
 @pytest.fixture(scope="session")

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import HERE, require, run
+from clientlib import HERE, require, run
 
 MESH_BOUNDS = [[-0.85, -0.4, -0.4], [0.85, 0.45, 0.4]]
 

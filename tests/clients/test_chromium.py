@@ -5,7 +5,7 @@ from __future__ import annotations
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
-from conftest import foreground_fraction, require, run
+from clientlib import foreground_fraction, require, run
 
 WIDTH, HEIGHT = 1300, 4000
 

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import HERE, foreground_fraction, require, run, with_display
+from clientlib import HERE, foreground_fraction, require, run, with_display
 
 SPHERE_BOUNDS = [-0.85, 0.85, -0.4, 0.45, -0.4, 0.4]  # union of the two spheres
 

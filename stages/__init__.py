@@ -4,9 +4,10 @@ Each module has ``Params`` (pydantic, unknown keys forbidden), optional ``REQUIR
 that must run before it) and ``run(ctx, params) -> dict`` (stats for the manifest).
 """
 
-from stages import export, voxelise
+from stages import components, export, voxelise
 
 REGISTRY = {
     "voxelise": voxelise,
+    "components": components,
     "export": export,
 }

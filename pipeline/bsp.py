@@ -61,15 +61,16 @@ def nb_and(f1: float, f2: float, fam: int, k: float) -> float:
     """R-conjunction; Numba twin of :func:`pipeline.rfunctions.r_and` (eq. 1, eq. 2, SARDF)."""
     if fam == 0:
         return min(f1, f2)
-    if fam == 1:
-        return f1 + f2 - np.sqrt(f1 * f1 + f2 * f2)
-    rho = np.sqrt(f1 * f1 + f2 * f2)
+    if fam == 1:  # cancellation-free form, see pipeline.rfunctions.r_and
+        s = f1 + f2
+        rho = np.hypot(f1, f2)
+        return 2.0 * f1 * f2 / (s + rho) if s > 0 else s - rho
+    rho = np.hypot(f1, f2)
     u = f1 - f2
     w = k * rho
-    au = abs(u)
-    if au < w:
-        au = (u * u + w * w) / (2.0 * w)
-    return 0.5 * (f1 + f2 - au)
+    if abs(u) >= w:
+        return min(f1, f2)
+    return 0.5 * (f1 + f2 - (u * u + w * w) / (2.0 * w))
 
 
 @njit(cache=True)

@@ -40,10 +40,21 @@ def r_and(f1: np.ndarray, f2: np.ndarray, family: str = "r0", k: float = SARDF_K
     if family == "min_max":
         return np.minimum(f1, f2)
     if family == "r0":
-        return f1 + f2 - np.sqrt(f1 * f1 + f2 * f2)
+        # f1 + f2 - sqrt(f1^2 + f2^2), written without cancellation: where f1 + f2 > 0 use the
+        # conjugate form 2 f1 f2 / (f1 + f2 + rho) (the naive form loses the sign when the
+        # arguments differ by many orders of magnitude, as deep BSP trees produce)
+        s = f1 + f2
+        rho = np.hypot(f1, f2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(s > 0, 2.0 * f1 * f2 / (s + rho), s - rho)
     if family == "sardf":
-        rho = np.sqrt(f1 * f1 + f2 * f2)
-        return 0.5 * (f1 + f2 - _smooth_abs(f1 - f2, rho, k))
+        rho = np.hypot(f1, f2)
+        u = f1 - f2
+        inner = np.abs(u) < k * rho
+        with np.errstate(divide="ignore", invalid="ignore"):
+            smooth = 0.5 * (f1 + f2 - _smooth_abs(u, rho, k))
+        # outside the window the value is min itself: return it exactly (no cancellation)
+        return np.where(inner, smooth, np.minimum(f1, f2))
     raise ValueError(f"unknown R-function family {family!r}")
 
 

@@ -6,6 +6,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from pipeline.grid import vdb
 
 _SKIP_META = {"name", "class"}  # shown in the grid's header line
@@ -46,16 +48,29 @@ def describe_grid(grid: Any) -> list[str]:
         lo, hi = grid.evalActiveVoxelBoundingBox()
         wlo = grid.transform.indexToWorld(lo)
         whi = grid.transform.indexToWorld(hi)
-        vmin, vmax = grid.evalMinMax()
         lines.append(f"  index bbox:    {_fmt(tuple(lo))} .. {_fmt(tuple(hi))}")
         lines.append(f"  world bbox:    {_fmt(tuple(wlo))} .. {_fmt(tuple(whi))}  (voxel centres)")
-        lines.append(f"  active min:    {_fmt(_value(vmin))}")
-        lines.append(f"  active max:    {_fmt(_value(vmax))}")
+        lines.extend(_range_lines(grid))
     meta = {k: v for k, v in grid.metadata.items() if k not in _SKIP_META}
     if meta:
         lines.append("  metadata:")
         lines.extend(f"    {k}: {_fmt(meta[k])}" for k in sorted(meta))
     return lines
+
+
+def _range_lines(grid: Any) -> list[str]:
+    """Min/max of the active values; for vector grids per component and of the magnitude.
+
+    (OpenVDB's evalMinMax orders vectors lexicographically, which says little about a field.)
+    """
+    if not grid.valueTypeName.startswith("vec"):
+        vmin, vmax = grid.evalMinMax()
+        return [f"  active min:    {_fmt(float(vmin))}", f"  active max:    {_fmt(float(vmax))}"]
+    values = np.array([item.value for item in grid.citerOnValues()], dtype=np.float64).reshape(-1, 3)
+    norm = np.linalg.norm(values, axis=1)
+    return [f"  active min:    {_fmt(tuple(values.min(axis=0).tolist()))}  (per component)",
+            f"  active max:    {_fmt(tuple(values.max(axis=0).tolist()))}  (per component)",
+            f"  |value| range: {_fmt(float(norm.min()))} .. {_fmt(float(norm.max()))}"]
 
 
 def _value(v: Any) -> Any:

@@ -201,6 +201,9 @@ def test_describe_vdb(grids: dict, tmp_path: Path) -> None:
     vmin, _ = grids["surface"].evalMinMax()
     assert f"active min:    {vmin:.6g}" in text
     assert "config_name: spheres" in text and "config: s.yaml" in text
+    colour = text[text.index("grid 'color'"):]
+    assert "active min:    (0.1, 0.2, 0.1)  (per component)" in colour
+    assert "active max:    (1, 0.3, 1)  (per component)" in colour
     with pytest.raises(ValueError, match="no such file"):
         describe_vdb(tmp_path / "missing.vdb")
     bad = tmp_path / "bad.vdb"

@@ -21,13 +21,14 @@ class JobContext:
     warnings: list[str] = field(default_factory=list)
     manifest: dict[str, Any] = field(default_factory=dict)  # extra manifest sections
     progress: Any = None  # callable(str) or None
+    after_manifest: list = field(default_factory=list)  # callables(ctx, manifest) run once it exists
 
     @property
     def voxel_size(self) -> float:
         return self.job.domain.voxel_size
 
-    def add_output(self, path: Path, kind: str) -> None:
-        self.outputs.append({"path": str(Path(path).relative_to(self.out_dir)), "kind": kind})
+    def add_output(self, path: Path, kind: str, **extra: Any) -> None:
+        self.outputs.append({"path": str(Path(path).relative_to(self.out_dir)), "kind": kind, **extra})
 
     def grid_metadata(self, stage: str, params: Any) -> dict:
         """Metadata every grid carries: config name and hash, the stage and its parameters."""

@@ -22,7 +22,7 @@ import numpy as np
 import vtk
 from vtk.util import numpy_support as nps
 
-from pipeline.vdbio import atomic_output
+from pipeline.atomic import atomic_path
 from pipeline.vtkio import (
     SurfaceMesh,
     default_isovalue,
@@ -159,7 +159,7 @@ def _draw_slice(ax: Any, sl: Slice, kind: str, cmap: Any, norm: mcolors.Normaliz
 
 def _save(fig: Figure, path: Path, dpi: int) -> None:
     FigureCanvasAgg(fig)
-    with atomic_output(path) as tmp:
+    with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png", facecolor="white")
 
 

@@ -13,8 +13,8 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from pipeline.atomic import atomic_path
 from pipeline.previews import SURFACE_PNG
-from pipeline.vdbio import atomic_output
 
 _CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:1.5em auto;max-width:1250px;
@@ -138,6 +138,6 @@ def write_report(path: str | os.PathLike, manifest: Mapping[str, Any],
         found = (path.parent / "previews").glob("*.png")
         images = sorted(found, key=lambda p: (p.name != SURFACE_PNG, p.name))
     text = render_report(manifest, [Path(p) for p in images])
-    with atomic_output(path) as tmp:
+    with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return path

@@ -31,6 +31,8 @@ def run_job(job: Job, out_root: str | Path, progress=None) -> dict:
         records = [_run_stage(ctx, name, params) for name, params in job.stages]
         manifest = _manifest(ctx, records)
         write_json(staging / "manifest.json", manifest)
+        for hook in ctx.after_manifest:
+            hook(ctx, manifest)
         _swap_in(staging, final)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)

@@ -10,37 +10,19 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
-from collections.abc import Iterable, Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pipeline.atomic import atomic_path
 from pipeline.grid import vdb
 
 HALF_EXACT_INT = 2048  # largest integer below which every integer is exact in IEEE half precision
 _INT64 = (-(2**63), 2**63 - 1)
 
 
-@contextmanager
-def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path`` (same suffix); on success move it onto ``path``.
-
-    On any exception the temporary file is removed and ``path`` is left as it was, so a failed
-    run never leaves a half-written output.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def metadata_value(value: Any) -> str | bool | int | float | tuple:
@@ -146,7 +128,7 @@ def write_vdb(
             if g.name in halves:
                 _check_half_safe(g)
             g.saveFloatAsHalf = g.name in halves
-        with atomic_output(path) as tmp:
+        with atomic_path(path) as tmp:
             vdb.write(str(tmp), grids=list(grids), metadata=file_metadata_dict(file_metadata or {}))
     finally:
         for g, flag in zip(grids, saved, strict=True):

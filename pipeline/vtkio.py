@@ -20,8 +20,8 @@ import numpy as np
 import vtk
 from vtk.util import numpy_support as nps
 
+from pipeline.atomic import atomic_path
 from pipeline.grid import pack_keys
-from pipeline.vdbio import atomic_output
 
 DEFAULT_MAX_POINTS = 16_000_000  # .vti points before a stride is applied (64 MB per float array)
 DENSE_FALLBACK = 8  # dense box read for inactive samples when the box is <= 8x their count
@@ -175,7 +175,7 @@ def _field(name: str, values: Iterable[float]) -> vtk.vtkDoubleArray:
 
 
 def _write(writer: vtk.vtkXMLWriter | vtk.vtkWriter, data: Any, path: Path) -> None:
-    with atomic_output(path) as tmp:
+    with atomic_path(path) as tmp:
         writer.SetFileName(str(tmp))
         writer.SetInputData(data)
         if writer.Write() != 1:
@@ -469,7 +469,7 @@ def write_pvd(path: str | os.PathLike, frames: Iterable[tuple[float, str | os.Pa
                       file=rel.as_posix())
         count += 1
     ET.indent(root)
-    with atomic_output(path) as tmp:
+    with atomic_path(path) as tmp:
         ET.ElementTree(root).write(tmp, encoding="utf-8", xml_declaration=True)
     return {"path": path.name, "kind": "pvd", "frames": count}
 

@@ -1,33 +1,66 @@
-"""export: write the grids the stages made to <out>/<name>/<name>.vdb."""
+"""export: the grids the stages made -> .vdb, VTK files, previews and report.html.
+
+Library calls: pipeline.vdbio.write_vdb, pipeline.vtkio.write_vtk_outputs,
+pipeline.previews.write_previews, pipeline.report.write_report (after the manifest).
+"""
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Literal
+
 from pydantic import Field
 
-from pipeline.atomic import atomic_path
-from pipeline.grid import vdb
 from stages.base import StageParams
 
 REQUIRES = ("voxelise",)
+VTKKind = Literal["vti", "vtp", "vtu", "ply", "obj"]
 
 
 class Params(StageParams):
     vdb: bool = True
     grids: list[str] | None = Field(default=None, description="grid names to write (default: all)")
-    half_float: bool = Field(default=False, description="store float grids as 16-bit half floats")
+    half_float: bool | list[str] = Field(default=False, description="16-bit storage: all float grids or a list")
+    vtk: list[VTKKind] = Field(default_factory=list, description="VTK files: vti vtp vtu ply obj")
+    max_points: int = Field(default=16_000_000, gt=0, description="largest .vti; beyond it a stride is used")
+    adaptivity: float = Field(default=0.0, ge=0, le=1, description="volumeToMesh adaptivity for the surface")
+    previews: bool = False
+    report: bool = Field(default=True, description="report.html (with previews when they are made)")
 
 
 def run(ctx, p: Params) -> dict:
-    stats: dict = {}
+    from pipeline.vdbio import write_vdb
+    from pipeline.vtkio import write_vtk_outputs
+
+    names = [n for n in ctx.grids if p.grids is None or n in p.grids]
+    grids = {n: ctx.grids[n] for n in names}
+    stats: dict = {"grids": names}
     if p.vdb:
-        names = [n for n in ctx.grids if p.grids is None or n in p.grids]
-        grids = [ctx.grids[n] for n in names]
-        for g in grids:
-            g.saveFloatAsHalf = p.half_float
         path = ctx.out_dir / f"{ctx.job.name}.vdb"
-        with atomic_path(path) as tmp:
-            vdb.write(str(tmp), grids=grids, metadata={"creator": "frepvdb", "config": ctx.job.name,
-                                                      "config_sha256": ctx.job.config_sha256})
+        write_vdb(path, list(grids.values()), {"creator": "frepvdb", "config": ctx.job.name,
+                                               "config_sha256": ctx.job.config_sha256},
+                  half_float=p.half_float)
         ctx.add_output(path, "vdb")
-        stats["vdb_grids"] = names
+    mesh = None
+    if p.vtk:
+        entries, mesh = write_vtk_outputs(ctx.out_dir, ctx.job.name, grids, ctx.voxel_size, p.vtk,
+                                          max_points=p.max_points, adaptivity=p.adaptivity)
+        for e in entries:
+            ctx.add_output(ctx.out_dir / Path(e["path"]).name, e["kind"], **{k: v for k, v in e.items()
+                                                                         if k not in ("path", "kind")})
+        stats["vtk"] = [e["path"] for e in entries]
+    if p.previews:
+        from pipeline.previews import write_previews
+
+        for png in write_previews(ctx.out_dir / "previews", grids, ctx.voxel_size, mesh=mesh):
+            ctx.add_output(png, "preview")
+    if p.report:
+        ctx.after_manifest.append(_write_report)
+        ctx.outputs.append({"path": "report.html", "kind": "report"})
     return stats
+
+
+def _write_report(ctx, manifest: dict) -> None:
+    from pipeline.report import write_report
+
+    write_report(ctx.out_dir / "report.html", manifest)

@@ -48,7 +48,8 @@ class CellLevels:
     stats: dict = field(default_factory=dict)
 
 
-def _root_size(dims: np.ndarray, block: int) -> int:
+def root_size_for(dims: np.ndarray, block: int) -> int:
+    """Size of the top-level cells: a power of two >= the domain (at most an upper internal node)."""
     size = max(block, LEAF)
     while size < dims.max() and size < 4096:
         size *= 2
@@ -74,16 +75,20 @@ def bound_cells(model: Node, lo_idx: np.ndarray, hi_idx: np.ndarray, h: float, p
 
 def enumerate_cells(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: float,
                     block: int, t: float = 0.0, stop_size: int | None = None,
-                    progress: Callable[[str], None] | None = None) -> CellLevels:
+                    progress: Callable[[str], None] | None = None, root_size: int | None = None,
+                    clip: tuple[np.ndarray, np.ndarray] | None = None) -> CellLevels:
     """Top-down affine subdivision of the index box imin..imax (components seed, section 3.2).
 
     Returns the blocks (size ``block``) that may hold voxels within the band, and the cells
     proven inside at every level. ``stop_size`` ends the descent early (for estimates).
+    ``clip`` restricts the work to a brick of the domain while keeping the cells (and hence
+    the bounds) of the whole-domain run: a bricked run finds exactly the same blocks.
     """
     dims = imax - imin + 1
-    size = _root_size(dims, block)
-    start = (imin // size) * size
-    counts = ((imax - start) // size) + 1
+    size = root_size or root_size_for(dims, block)
+    lo_c, hi_c = (imin, imax) if clip is None else (np.maximum(imin, clip[0]), np.minimum(imax, clip[1]))
+    start = (lo_c // size) * size
+    counts = ((hi_c - start) // size) + 1
     grid = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
     cells = start + grid * size
     pad = band * h
@@ -108,7 +113,7 @@ def enumerate_cells(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, b
             out.blocks = amb
             break
         size //= 2
-        cells = _children(amb, size, imin, imax)
+        cells = _children(amb, size, lo_c, hi_c)
     out.stats = st
     return out
 
@@ -186,10 +191,23 @@ class Voxelised:
     stats: dict
 
 
-def voxelise(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: float = 3.0,
-             block: int = 4, t: float = 0.0, progress: Callable[[str], None] | None = None) -> Voxelised:
-    """Voxelise ``model`` over the index box imin..imax: sparse narrow band plus inside tiles."""
-    levels = enumerate_cells(model, imin, imax, h, band, block, t, progress=progress)
+@dataclass
+class BlockSamples:
+    """Evaluated blocks of one domain or brick, before assembly into leaves (picklable)."""
+
+    blocks: np.ndarray  # (N,3) block origins
+    values: np.ndarray  # (N,b,b,b) float64 field values
+    active: np.ndarray  # (N,b,b,b) band mask
+    valid: np.ndarray  # (N,b,b,b) inside the domain
+    inside: list  # [(origins, size)] cells proven inside, per level
+    stats: dict
+
+
+def sample_blocks(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: float = 3.0,
+                  block: int = 4, t: float = 0.0, progress: Callable[[str], None] | None = None,
+                  root_size: int | None = None, clip: tuple[np.ndarray, np.ndarray] | None = None) -> BlockSamples:
+    """Enumerate, evaluate and band-mark the blocks of the domain (or of one brick of it)."""
+    levels = enumerate_cells(model, imin, imax, h, band, block, t, progress=progress, root_size=root_size, clip=clip)
     blocks = levels.blocks
     vals = evaluate_blocks(model, blocks, block, h, t)
     valid = _in_domain(blocks, block, imin, imax)
@@ -200,20 +218,54 @@ def voxelise(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: fl
     active = band_mask(np.where(np.isfinite(vals), vals, -np.inf), h, band) & valid
     if progress:
         progress(f"evaluated {len(blocks)} blocks")
-    bg = _background(vals[active], band, h)
-    grid = _assemble_leaves(blocks, block, vals, active, valid, levels.inside, h, bg)
-    inside_boxes = _inside_boxes(levels.inside, imin, imax)
-    stats = dict(levels.stats)
+    return BlockSamples(blocks, vals, active, valid, levels.inside, levels.stats)
+
+
+def merge_samples(parts: list[BlockSamples]) -> BlockSamples:
+    """Concatenate the samples of bricks (disjoint by construction) into one."""
+    if len(parts) == 1:
+        return parts[0]
+    cat = [np.concatenate([getattr(p, k) for p in parts]) for k in ("blocks", "values", "active", "valid")]
+    keys = ("cells_visited", "cells_culled_inside", "cells_culled_outside")
+    stats = {k: sum(p.stats[k] for p in parts) for k in keys}
+    stats["bricks"] = len(parts)
+    return BlockSamples(*cat, [lv for p in parts for lv in p.inside], stats)
+
+
+def assemble(s: BlockSamples, imin: np.ndarray, imax: np.ndarray, h: float, band: float) -> Voxelised:
+    """Leaves, inside boxes and statistics from the evaluated blocks."""
+    block = s.values.shape[1] if len(s.values) else 4
+    bg = _background(s.values[s.active], band, h)
+    grid = _assemble_leaves(s.blocks, block, s.values, s.active, s.valid, s.inside, h, bg)
+    inside_boxes = _inside_boxes(s.inside, imin, imax)
+    stats = dict(s.stats)
     stats.update({
-        "block": block,
-        "blocks_evaluated": int(len(blocks)),
-        "voxels_evaluated": int(valid.sum()),
-        "active_voxels": int(active.sum()),
+        "block": int(block),
+        "blocks_evaluated": int(len(s.blocks)),
+        "voxels_evaluated": int(s.valid.sum()),
+        "active_voxels": int(s.active.sum()),
         "leaves": int(len(grid.origins)),
         "inside_tiles": int(len(inside_boxes)),
         "background": float(bg),
     })
     return Voxelised(grid, inside_boxes, stats)
+
+
+def voxelise(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: float = 3.0,
+             block: int = 4, t: float = 0.0, progress: Callable[[str], None] | None = None) -> Voxelised:
+    """Voxelise ``model`` over the index box imin..imax: sparse narrow band plus inside tiles."""
+    return assemble(sample_blocks(model, imin, imax, h, band, block, t, progress), imin, imax, h, band)
+
+
+def bricks_for(imin: np.ndarray, imax: np.ndarray, brick: int, block: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Index boxes of the bricks (aligned to ``brick``, a multiple of the leaf) covering the domain."""
+    start = (imin // brick) * brick
+    counts = ((imax - start) // brick) + 1
+    out = []
+    for ijk in np.ndindex(*[int(c) for c in counts]):
+        lo = start + np.array(ijk) * brick
+        out.append((np.maximum(lo, imin), np.minimum(lo + brick - 1, imax)))
+    return out
 
 
 def _in_domain(blocks: np.ndarray, b: int, imin: np.ndarray, imax: np.ndarray) -> np.ndarray:
@@ -280,7 +332,10 @@ def _inside_boxes(inside_levels, imin, imax) -> np.ndarray:
     for origins, size in inside_levels:
         lo, hi = _clip_boxes(origins, size, imin, imax)
         boxes.append(np.stack([lo, hi], axis=1))
-    return np.concatenate(boxes) if boxes else np.zeros((0, 2, 3), np.int64)
+    if not boxes:
+        return np.zeros((0, 2, 3), np.int64)
+    # bricks of one domain share their coarse cells: keep each box once
+    return np.unique(np.concatenate(boxes).reshape(-1, 6), axis=0).reshape(-1, 2, 3)
 
 
 def estimate_band_bytes(model: Node, domain, band: float, t: float = 0.0) -> float:

@@ -1,10 +1,9 @@
-"""Command line: ``frepvdb run | validate | info``. Exit 0 ok, 2 bad config or input, 1 failure."""
+"""Command line: ``frepvdb run | validate | info | collide``. Exit 0 ok, 2 bad config or input, 1 failure."""
 
 from __future__ import annotations
 
 import argparse
 import sys
-import traceback
 from pathlib import Path
 
 import yaml
@@ -33,9 +32,10 @@ def _parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run one or more configs")
     r.add_argument("configs", nargs="+", type=Path)
     r.add_argument("--out", type=Path, default=Path("outputs"), help="output root (default: outputs)")
-    r.add_argument("--executor", choices=["local", "dask"], default="local")
+    r.add_argument("--executor", choices=["local", "dask"], default=None, help="default: the config's, else local")
     r.add_argument("--workers", type=int, default=None)
     r.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
+    r.add_argument("--force", action="store_true", help="rerun jobs whose outputs are up to date")
     r.add_argument("--debug", action="store_true", help="print tracebacks of failures")
     r.set_defaults(func=cmd_run)
     v = sub.add_parser("validate", help="parse and check a config; print it normalised")
@@ -44,6 +44,11 @@ def _parser() -> argparse.ArgumentParser:
     i = sub.add_parser("info", help="describe the grids in a .vdb file")
     i.add_argument("file", type=Path)
     i.set_defaults(func=cmd_info)
+    c = sub.add_parser("collide", help="do two models intersect? (component count of A AND B)")
+    c.add_argument("a", type=Path)
+    c.add_argument("b", type=Path)
+    c.add_argument("--tolerance", type=float, default=None, help="finest cell (default: the smaller voxel size)")
+    c.set_defaults(func=cmd_collide)
     return ap
 
 
@@ -66,39 +71,85 @@ def cmd_info(args) -> int:
     return EXIT_OK
 
 
-def cmd_run(args) -> int:
+def cmd_collide(args) -> int:
+    """components seed, section 5: collision iff the intersection has a component."""
+    import numpy as np
+
+    from pipeline.components import collide
     from pipeline.config import load_job
-    from pipeline.progress import StageProgress
-    from pipeline.runner import run_job
+
+    a, b = load_job(args.a), load_job(args.b)
+    tol = args.tolerance or min(a.domain.voxel_size, b.domain.voxel_size)
+    if not tol > 0:
+        print("error: --tolerance must be > 0", file=sys.stderr)
+        return EXIT_INPUT
+    lo = np.maximum(np.asarray(a.domain.bounds[0]), np.asarray(b.domain.bounds[0]))
+    hi = np.minimum(np.asarray(a.domain.bounds[1]), np.asarray(b.domain.bounds[1]))
+    res = collide(a.model, b.model, (lo, hi), tol, a.t, b.t)
+    print(f"collision: {'yes' if res.collide else 'no'}")
+    print(f"tolerance: {res.tolerance:g} (octree depth {res.depth}, {res.count} component(s) in the intersection)")
+    return EXIT_OK
+
+
+def cmd_run(args) -> int:
+    from pipeline.batch import make_executor, run_batch
+    from pipeline.config import load_jobs
+    from pipeline.progress import BatchProgress
 
     status = EXIT_OK
     jobs = []
     for cfg in args.configs:
         try:
-            jobs.append(load_job(cfg))
+            jobs.extend(load_jobs(cfg))
         except ConfigError as e:
-            for line in e.lines():
-                print(f"error: {line}", file=sys.stderr)
+            _print_problems(e)
             status = EXIT_INPUT
-    for job in jobs:
-        with StageProgress(job.name, len(job.stages)) as progress:
-            try:
-                manifest = run_job(job, args.out, progress=progress)
-            except ConfigError as e:
-                for line in e.lines():
-                    print(f"error: {line}", file=sys.stderr)
-                status = EXIT_INPUT
-                continue
-            except Exception as e:  # a failure while running: report, go on with the others
-                if args.debug:
-                    traceback.print_exc()
-                print(f"error: {job.config_path}: job {job.name!r} failed: {type(e).__name__}: {e}", file=sys.stderr)
-                status = max(status, EXIT_FAIL) if status != EXIT_INPUT else status
-                continue
-        secs = sum(s["seconds"] for s in manifest["stages"])
-        print(f"{job.name}: {len(manifest['outputs'])} files in {Path(args.out) / job.name} ({secs:.2f} s)")
+    if not jobs:
+        return status
+    conf = next((j.executor for j in jobs if j.executor is not None), None)
+    kind = args.executor or (conf.kind if conf else "local")
+    workers = args.workers or (conf.workers if conf else None)
+    scheduler = args.scheduler or (conf.scheduler if conf else None)
+    bricked = any(j.bricks for j in jobs)
+    executor = make_executor(kind, workers, scheduler, jobs=len(jobs) + (2 if bricked else 0))
+    try:
+        with BatchProgress(jobs) as progress:
+            rows = run_batch(jobs, args.out, executor, force=args.force, on_done=progress.job_done,
+                             progress=progress.stage)
+    finally:
+        executor.close()
+    for row in rows:
+        if row["status"] == "input-error":
+            print("\n".join(f"error: {line}" for line in row["message"].splitlines()), file=sys.stderr)
+            status = EXIT_INPUT
+        elif row["status"] == "failed":
+            print(f"error: {row['config']}: job {row['name']!r} failed: {row['message']}", file=sys.stderr)
+            if args.debug and row.get("traceback"):
+                print(row["traceback"], file=sys.stderr)
+            status = status if status == EXIT_INPUT else EXIT_FAIL
+    _summary(rows, Path(args.out), executor.describe())
     return status
 
+
+def _print_problems(e: ConfigError) -> None:
+    for line in e.lines():
+        print(f"error: {line}", file=sys.stderr)
+
+
+def _summary(rows: list[dict], out: Path, where: str) -> None:
+    """One line per job: status, time, active voxels, components, where the files are."""
+    if len(rows) == 1 and rows[0]["status"] == "ok":
+        r = rows[0]
+        print(f"{r['name']}: {r.get('outputs', 0)} files in {out / r['name']} ({r['seconds']:.2f} s)")
+        return
+    print(f"{'job':<28} {'status':<12} {'seconds':>8} {'active voxels':>14} {'components':>10}  ({where})")
+    for r in rows:
+        av = r.get("active_voxels")
+        comp = r.get("components")
+        print(f"{r['name']:<28} {r['status']:<12} {r.get('seconds', 0):>8.2f} "
+              f"{'' if av is None else av:>14} {'' if comp is None else comp:>10}")
+    bad = sum(r["status"] in ("failed", "input-error") for r in rows)
+    print(f"{len(rows)} jobs: {len(rows) - bad} ok or up to date, {bad} failed; outputs in {out}")
 
 if __name__ == "__main__":
     sys.exit(main())

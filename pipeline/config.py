@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import difflib
 import hashlib
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import yaml
@@ -254,12 +255,55 @@ class DomainConfig(_Strict):
         return self
 
 
+class FramesConfig(_Strict):
+    """A sweep of the model's time parameter: ``count`` frames from t[0] to t[1]."""
+
+    count: int = Field(ge=1, le=100000)
+    t: tuple[float, float] = (0.0, 1.0)
+
+
+class ExecutorConfig(_Strict):
+    kind: Literal["local", "dask"] = "local"
+    workers: int | None = Field(default=None, ge=1)
+    scheduler: str | None = Field(default=None, description="address of an existing Dask scheduler")
+
+
+class BricksConfig(_Strict):
+    size: int = Field(ge=8, description="voxels per brick side (a multiple of 8, the VDB leaf)")
+
+    @model_validator(mode="after")
+    def _leaf_multiple(self):
+        if self.size % 8:
+            raise ValueError("size must be a multiple of 8 (OpenVDB leaf nodes are 8^3)")
+        return self
+
+
+class JobEntry(_Strict):
+    """One entry of ``jobs:``; missing keys come from the top level."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
+    domain: DomainConfig | None = None
+    model: Any
+    stages: list[Any] | None = Field(default=None, min_length=1)
+    t: float | None = None
+
+
 class TopConfig(_Strict):
     name: str = Field(default="", pattern=r"^[A-Za-z0-9_.-]*$")
-    domain: DomainConfig
-    model: Any
-    stages: list[Any] = Field(min_length=1)
+    domain: DomainConfig | None = None
+    model: Any = None
+    stages: list[Any] | None = Field(default=None, min_length=1)
     t: float = Field(default=0.0, description="time parameter of the model (morph, expr)")
+    jobs: list[JobEntry] | None = Field(default=None, min_length=1)
+    frames: FramesConfig | None = None
+    executor: ExecutorConfig | None = None
+    bricks: BricksConfig | None = None
+
+    @model_validator(mode="after")
+    def _model_or_jobs(self):
+        if (self.model is None) == (self.jobs is None):
+            raise ValueError("give either model (one job) or jobs (a list of jobs)")
+        return self
 
 
 @dataclass(frozen=True)
@@ -297,10 +341,17 @@ class Job:
     t: float = 0.0
     raw: Any = None
     normalised: dict = field(default_factory=dict)
+    index: tuple[int, int] = (0, 0)  # (entry in jobs:, frame): how a worker finds this job again
+    frame: dict | None = None  # {"index", "count", "t", "series"} for frame sweeps
+    bricks: int | None = None
+    executor: ExecutorConfig | None = None
+    job_sha256: str = ""  # hash of the normalised job and its input files: the key for resume
 
 
-def load_job(path: str | Path) -> Job:
-    """Load and validate a config file into a Job, or raise ConfigError."""
+def load_jobs(path: str | Path, select: str | None = None) -> list[Job]:
+    """Load and validate a config file into its jobs (one, a ``jobs:`` list, times ``frames``).
+
+    ``select`` builds only the job of that name (how a worker finds its job again)."""
     path = Path(path)
     file = str(path)
     root = load_yaml(path)
@@ -311,34 +362,86 @@ def load_job(path: str | Path) -> Job:
     except ValidationError as e:
         raise ConfigError(validation_problems(e, file, root, (), TopConfig)) from None
     ctx = _Ctx(file, root, path.resolve().parent)
-    domain = _domain(top.domain, ctx)
-    model = build_node(top.model, ("model",), ctx)
-    stages = _stages(top.stages, ctx)
     sha = hashlib.sha256(path.read_bytes()).hexdigest()
-    job = Job(top.name or path.stem, file, sha, domain, model, stages, top.t, root)
-    job.normalised = _normalised(job, top)
-    _check_model_values(job, ctx)
-    _check_memory(job, ctx)
-    return job
+    entries = [(None, top.name or path.stem, None, top.model, None, None)] if top.jobs is None else [
+        (i, e.name, e.domain, e.model, e.stages, e.t) for i, e in enumerate(top.jobs)]
+    jobs = []
+    for i, name, dom, model_raw, stages_raw, t in entries:
+        base = () if i is None else ("jobs", i)
+        jobs.extend(_entry_jobs(ctx, top, sha, base, i or 0, name, dom, model_raw, stages_raw, t, select))
+    names = [j.name for j in jobs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ctx.fail(("jobs",), f"job names must be unique (outputs go to <out>/<name>/): {dup}")
+    return jobs
 
 
-def _domain(d: DomainConfig, ctx: _Ctx) -> Domain:
+def load_job(path: str | Path) -> Job:
+    """The single job of a config file (a ``jobs:`` or ``frames:`` config is an error here)."""
+    jobs = load_jobs(path)
+    if len(jobs) != 1:
+        raise ConfigError.one(str(path), None, (), f"expected one job, the config makes {len(jobs)}")
+    return jobs[0]
+
+
+def _entry_jobs(ctx: _Ctx, top: TopConfig, sha: str, base: tuple, index: int, name: str,
+                dom: DomainConfig | None, model_raw: Any, stages_raw: list | None, t: float | None,
+                select: str | None = None) -> list[Job]:
+    if dom is None and top.domain is None:
+        raise ctx.fail(base, "missing required key 'domain' (here or at the top level)")
+    if stages_raw is None and top.stages is None:
+        raise ctx.fail(base, "missing required key 'stages' (here or at the top level)")
+    domain = _domain(dom or top.domain, ctx, base if dom is not None else ())
+    stages = _stages(stages_raw or top.stages, ctx, base + ("stages",) if stages_raw is not None else ("stages",))
+    frames = [(None, top.t if t is None else t)]
+    if top.frames is not None:
+        c, (t0, t1) = top.frames.count, top.frames.t
+        frames = [(f, t0 + (t1 - t0) * f / max(c - 1, 1)) for f in range(c)]
+    jobs = []
+    for f, tf in frames:
+        job_name = name if f is None else f"{name}_f{f:04d}"
+        if select is not None and job_name != select:
+            continue
+        model = build_node(model_raw, base + ("model",), ctx)  # each job owns its tree
+        job = Job(job_name, ctx.file, sha, domain, model, stages, tf, ctx.root, index=(index, f or 0),
+                  bricks=top.bricks.size if top.bricks else None, executor=top.executor)
+        if f is not None:
+            job.frame = {"index": f, "count": top.frames.count, "t": tf, "series": name}
+        job.normalised = _normalised(job, model_raw)
+        job.job_sha256 = _job_hash(job)
+        _check_model_values(job, ctx)
+        _check_memory(job, ctx, base)
+        jobs.append(job)
+    return jobs
+
+
+def _job_hash(job: Job) -> str:
+    """Hash of what determines a job's outputs: its normalised config and its input files."""
+    h = hashlib.sha256(json.dumps(job.normalised, sort_keys=True, default=str).encode())
+    for node in job.model.walk():
+        path = getattr(node.params, "path", None)
+        if isinstance(path, str) and Path(path).is_file():
+            h.update(hashlib.sha256(Path(path).read_bytes()).digest())
+    return h.hexdigest()
+
+
+def _domain(d: DomainConfig, ctx: _Ctx, base: tuple = ()) -> Domain:
     lo, hi = d.bounds
     extent = max(b - a for a, b in zip(lo, hi, strict=True))
     h = d.voxel_size if d.voxel_size is not None else extent / d.resolution
     dom = Domain((tuple(lo), tuple(hi)), float(h))
     if np.abs(np.concatenate([dom.index_min, dom.index_max])).max() >= MAX_INDEX:
         key = "voxel_size" if d.voxel_size is not None else "resolution"
-        raise ctx.fail(("domain", key), f"index coordinates exceed OpenVDB's 32-bit range (voxel size {h:g})")
+        raise ctx.fail(base + ("domain", key), f"index coordinates exceed OpenVDB's 32-bit range (voxel size {h:g})")
     return dom
 
 
-def _stages(raw: list, ctx: _Ctx) -> list[tuple[str, Any]]:
+def _stages(raw: list, ctx: _Ctx, base: tuple = ("stages",)) -> list[tuple[str, Any]]:
     from stages import REGISTRY as STAGES
 
     out = []
     for i, item in enumerate(raw):
-        path = ("stages", i)
+        path = base + (i,)
         if not isinstance(item, dict) or len(item) != 1:
             raise ctx.fail(path, f"a stage is a mapping with one key, its name (one of: {', '.join(STAGES)})")
         name, body = next(iter(item.items()))
@@ -357,16 +460,16 @@ def _stages(raw: list, ctx: _Ctx) -> list[tuple[str, Any]]:
         needs = getattr(STAGES[n], "REQUIRES", ())
         missing = [r for r in needs if r not in names[:i]]
         if missing:
-            raise ctx.fail(("stages", i, n), f"needs the {', '.join(missing)} stage before it")
+            raise ctx.fail(base + (i, n), f"needs the {', '.join(missing)} stage before it")
     return out
 
 
-def _normalised(job: Job, top: TopConfig) -> dict:
+def _normalised(job: Job, model_raw: Any) -> dict:
     return {
         "name": job.name,
         "domain": job.domain.to_json(),
         "t": job.t,
-        "model": _to_plain(top.model),
+        "model": _to_plain(model_raw),
         "stages": [{n: p.model_dump(mode="json", by_alias=True)} for n, p in job.stages],
     }
 
@@ -420,7 +523,7 @@ def _parse_path(s: str) -> list:
     return out
 
 
-def _check_memory(job: Job, ctx: _Ctx) -> None:
+def _check_memory(job: Job, ctx: _Ctx, base: tuple = ()) -> None:
     """Refuse a domain whose narrow band would not fit in this machine's memory (estimate)."""
     from pipeline.voxelise import estimate_band_bytes
 
@@ -430,9 +533,22 @@ def _check_memory(job: Job, ctx: _Ctx) -> None:
     need = estimate_band_bytes(job.model, job.domain, voxelise.band, job.t)
     avail = _available_memory()
     if need > avail:
-        key = "voxel_size" if "voxel_size" in job.raw["domain"] else "resolution"
-        raise ctx.fail(("domain", key), f"this domain needs an estimated {need / 2**30:.1f} GiB for its narrow "
-                                        f"band; this machine has {avail / 2**30:.1f} GiB available")
+        local = _at(job.raw, base + ("domain",))
+        raw_dom = local or job.raw.get("domain", {})
+        key = "voxel_size" if "voxel_size" in raw_dom else "resolution"
+        where = (base if local else ()) + ("domain", key)
+        raise ctx.fail(where, f"this domain needs an estimated {need / 2**30:.1f} GiB for its narrow band; "
+                              f"this machine has {avail / 2**30:.1f} GiB available")
+
+
+def _at(root: Any, path: tuple) -> Any:
+    node = root
+    for part in path:
+        try:
+            node = node[part]
+        except (KeyError, IndexError, TypeError):
+            return None
+    return node
 
 
 def _available_memory() -> int:

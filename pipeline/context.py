@@ -22,6 +22,11 @@ class JobContext:
     manifest: dict[str, Any] = field(default_factory=dict)  # extra manifest sections
     progress: Any = None  # callable(str) or None
     after_manifest: list = field(default_factory=list)  # callables(ctx, manifest) run once it exists
+    executor: Any = None  # pipeline.batch.Executor for bricks (None: run bricks inline)
+
+    def map(self, fn, items: list) -> list:
+        """Map over the executor's workers (in order), or inline when there is none."""
+        return self.executor.map(fn, items) if self.executor is not None else [fn(x) for x in items]
 
     @property
     def voxel_size(self) -> float:

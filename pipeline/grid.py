@@ -154,7 +154,8 @@ def _boxes_to_fill(blocks: BlockGrid, inside_boxes: np.ndarray) -> np.ndarray:
     row = blocks.block_index(leaf)
     has_active = np.zeros(len(boxes), bool)
     ok = row >= 0
-    has_active[ok] = blocks.active[row[ok]].reshape(ok.sum(), -1).any(axis=1)
+    if ok.any():
+        has_active[ok] = blocks.active[row[ok]].reshape(int(ok.sum()), -1).any(axis=1)
     return boxes[~(within_leaf & has_active)]
 
 

@@ -18,7 +18,7 @@ from pipeline.grid import grid_stats
 from pipeline.voxelise import NonFiniteField
 
 
-def run_job(job: Job, out_root: str | Path, progress=None) -> dict:
+def run_job(job: Job, out_root: str | Path, progress=None, executor=None) -> dict:
     """Run every stage of ``job``; returns the manifest. Raises ConfigError for bad input."""
     out_root = Path(out_root)
     final = out_root / job.name
@@ -26,7 +26,7 @@ def run_job(job: Job, out_root: str | Path, progress=None) -> dict:
     if staging.exists():
         shutil.rmtree(staging)
     staging.mkdir(parents=True)
-    ctx = JobContext(job, staging, progress=progress)
+    ctx = JobContext(job, staging, progress=progress, executor=executor)
     try:
         records = [_run_stage(ctx, name, params) for name, params in job.stages]
         manifest = _manifest(ctx, records)
@@ -64,6 +64,8 @@ def _manifest(ctx: JobContext, records: list[dict]) -> dict:
         "name": job.name,
         "config": job.config_path,
         "config_sha256": job.config_sha256,
+        "job_sha256": job.job_sha256,
+        "status": "ok",
         "inputs": _inputs(job),
         "domain": job.domain.to_json(),
         "t": job.t,
@@ -75,6 +77,8 @@ def _manifest(ctx: JobContext, records: list[dict]) -> dict:
     meshes = [n.describe() for n in job.model.walk() if hasattr(n, "describe")]
     if meshes:
         m["meshes"] = meshes
+    if job.frame:
+        m["frame"] = job.frame
     m.update(ctx.manifest)
     return m
 

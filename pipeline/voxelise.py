@@ -37,6 +37,9 @@ class NonFiniteField(ValueError):
         super().__init__(f"field is not finite at ({point[0]:g}, {point[1]:g}, {point[2]:g})")
         self.point = point
 
+    def __reduce__(self):  # travels back from worker processes intact
+        return (NonFiniteField, (self.point,))
+
 
 @dataclass
 class CellLevels:

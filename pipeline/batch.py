@@ -1,0 +1,238 @@
+"""Batch runs: many jobs (configs, ``jobs:`` lists, ``frames:`` sweeps) on an executor.
+
+Executors are real engines, not a home-made scheduler: ``local`` is a process pool
+(:class:`concurrent.futures.ProcessPoolExecutor`), ``dask`` is Dask distributed, on an existing
+scheduler (``--scheduler``) or a ``LocalCluster`` (``--workers``). A job travels to a worker as
+a small reference (config path + job name); the worker loads and validates it itself, so model
+trees never need to be pickled. One job's failure is reported in its manifest and the summary
+and does not stop the others. A job whose outputs exist with the same job hash is skipped
+unless ``force``.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import shutil
+import time
+import traceback
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pipeline.atomic import write_json
+from pipeline.config import Job, load_jobs
+from pipeline.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class JobRef:
+    """What a worker needs to find a job again."""
+
+    config: str
+    name: str
+
+
+def ref_of(job: Job) -> JobRef:
+    return JobRef(str(Path(job.config_path).resolve()), job.name)
+
+
+def load_ref(ref: JobRef) -> Job:
+    jobs = load_jobs(ref.config, select=ref.name)
+    if not jobs:
+        raise ConfigError.one(ref.config, None, (), f"no job named {ref.name!r} in this config")
+    return jobs[0]
+
+
+# --- executors ----------------------------------------------------------------------------------
+
+
+class Executor:
+    """``map`` keeps order (bricks), ``map_unordered`` yields results as they finish (jobs)."""
+
+    workers: int = 1
+
+    def map(self, fn: Callable, items: list) -> list:
+        return [fn(x) for x in items]
+
+    def map_unordered(self, fn: Callable, items: list) -> Iterator:
+        for x in items:
+            yield fn(x)
+
+    def close(self) -> None:
+        pass
+
+    def describe(self) -> str:
+        return "inline"
+
+
+class LocalExecutor(Executor):
+    """A process pool over this machine's cores (spawned workers: safe with threads and OpenVDB)."""
+
+    def __init__(self, workers: int | None = None):
+        self.workers = workers or os.cpu_count() or 1
+        self.pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+
+    def map(self, fn, items):
+        return list(self.pool.map(fn, items))
+
+    def map_unordered(self, fn, items):
+        futures = [self.pool.submit(fn, x) for x in items]
+        for f in as_completed(futures):
+            yield f.result()
+
+    def close(self):
+        self.pool.shutdown()
+
+    def describe(self):
+        return f"local process pool, {self.workers} workers"
+
+
+class DaskExecutor(Executor):
+    """Dask distributed: an existing scheduler, or a LocalCluster of worker processes."""
+
+    def __init__(self, scheduler: str | None = None, workers: int | None = None):
+        from dask.distributed import Client, LocalCluster
+
+        self.cluster = None
+        if scheduler:
+            self.client = Client(scheduler)
+        else:
+            self.cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
+                                        processes=True, dashboard_address=None)
+            self.client = Client(self.cluster)
+        self.workers = len(self.client.scheduler_info()["workers"])
+        self.address = self.client.scheduler.address
+
+    def map(self, fn, items):
+        return self.client.gather(self.client.map(fn, items, pure=False))
+
+    def map_unordered(self, fn, items):
+        from dask.distributed import as_completed as dask_completed
+
+        for f in dask_completed(self.client.map(fn, items, pure=False)):
+            yield f.result()
+
+    def close(self):
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+    def describe(self):
+        return f"dask {self.address}, {self.workers} workers"
+
+
+def make_executor(kind: str = "local", workers: int | None = None, scheduler: str | None = None,
+                  jobs: int = 1) -> Executor:
+    """The executor for a run; a single unbricked job on 'local' runs inline (no pool to start)."""
+    if kind == "dask":
+        return DaskExecutor(scheduler, workers)
+    if jobs <= 1 and (workers or 1) <= 1:
+        return Executor()
+    return LocalExecutor(workers)
+
+
+# --- running one job ------------------------------------------------------------------------------
+
+
+def up_to_date(job: Job, out: Path) -> bool:
+    """Outputs of this exact job (same job hash) exist and the run succeeded."""
+    m = out / job.name / "manifest.json"
+    if not m.exists():
+        return False
+    try:
+        data = json.loads(m.read_text())
+    except (OSError, ValueError):
+        return False
+    return data.get("job_sha256") == job.job_sha256 and data.get("status", "ok") == "ok"
+
+
+def execute(job: Job, out: Path, force: bool = False, executor: Executor | None = None,
+            progress: Any = None) -> dict:
+    """Run one job; never raises for a job's own failure: returns its summary row."""
+    from pipeline.runner import run_job
+
+    t0 = time.perf_counter()
+    row = {"name": job.name, "config": job.config_path, "status": "ok", "seconds": 0.0, "message": ""}
+    if not force and up_to_date(job, out):
+        row.update(status="skipped", message="outputs up to date (same job hash); --force reruns")
+        return row
+    try:
+        manifest = run_job(job, out, progress=progress, executor=executor)
+        row["active_voxels"] = manifest["grids"].get("frep", {}).get("active_voxels")
+        row["components"] = manifest.get("components", {}).get("count")
+        row["outputs"] = len(manifest["outputs"])
+    except ConfigError as e:
+        row.update(status="input-error", message="\n".join(e.lines()))
+        _failure_manifest(job, out, row)
+    except Exception as e:  # the job failed; the batch goes on
+        row.update(status="failed", message=f"{type(e).__name__}: {e}", traceback=traceback.format_exc())
+        _failure_manifest(job, out, row)
+    row["seconds"] = round(time.perf_counter() - t0, 3)
+    return row
+
+
+def execute_ref(args: tuple[JobRef, str, bool]) -> dict:
+    """Worker entry point: load the job by reference and run it (inline bricks)."""
+    ref, out, force = args
+    try:
+        job = load_ref(ref)
+    except ConfigError as e:
+        return {"name": ref.name, "config": ref.config, "status": "input-error", "message": "\n".join(e.lines())}
+    return execute(job, Path(out), force)
+
+
+def _failure_manifest(job: Job, out: Path, row: dict) -> None:
+    """The failed job's folder holds only a manifest that says why (no partial outputs)."""
+    folder = out / job.name
+    if folder.exists():
+        shutil.rmtree(folder)
+    write_json(folder / "manifest.json", {
+        "name": job.name, "config": job.config_path, "config_sha256": job.config_sha256,
+        "job_sha256": job.job_sha256, "status": row["status"], "error": row["message"],
+        "outputs": [{"path": "manifest.json", "kind": "manifest"}], "grids": {}, "stages": [], "warnings": []})
+
+
+# --- a batch ----------------------------------------------------------------------------------------
+
+
+def run_batch(jobs: list[Job], out: Path, executor: Executor, force: bool = False,
+              on_done: Callable[[dict], None] | None = None, progress: Any = None) -> list[dict]:
+    """Run every job; bricked jobs run here with their bricks on the executor, the others are
+    spread over the executor's workers. Returns the summary rows in job order."""
+    out = Path(out)
+    rows: dict[str, dict] = {}
+    parallel = [j for j in jobs if not j.bricks]
+    here = [j for j in jobs if j.bricks]
+    if isinstance(executor, Executor) and type(executor) is Executor:
+        here, parallel = jobs, []  # inline: everything in this process, with stage progress
+    for row in executor.map_unordered(execute_ref, [(ref_of(j), str(out), force) for j in parallel]):
+        rows[row["name"]] = row
+        if on_done:
+            on_done(row)
+    for job in here:
+        row = execute(job, out, force, executor, progress)
+        rows[job.name] = row
+        if on_done:
+            on_done(row)
+    _write_frame_series(jobs, out, rows)
+    return [rows[j.name] for j in jobs]
+
+
+def _write_frame_series(jobs: Iterable[Job], out: Path, rows: dict) -> None:
+    """A .pvd per frame series, pointing at each frame's .vti/.vtp (for ParaView's time slider)."""
+    from pipeline.vtkio import write_pvd
+
+    series: dict[str, list[Job]] = {}
+    for j in jobs:
+        if j.frame:
+            series.setdefault(j.frame["series"], []).append(j)
+    for name, frames in series.items():
+        for kind in ("vti", "vtp"):
+            done = [j for j in frames if rows.get(j.name, {}).get("status") in ("ok", "skipped")]
+            entries = [(j.t, f"{j.name}/{j.name}.{kind}") for j in done if (out / j.name / f"{j.name}.{kind}").exists()]
+            if entries:
+                write_pvd(out / f"{name}_{kind}.pvd", entries)

@@ -831,3 +831,36 @@ def enclosing_box(model: Node, t: float = 0.0, extent: float = 1.0e3, depth: int
         if not shrunk:
             break
     return lo, hi
+
+
+# --- section 5: collision / null-object detection --------------------------------------------------
+
+
+@dataclass
+class Collision:
+    collide: bool
+    count: int
+    tolerance: float
+    depth: int
+
+
+def collide(model_a: Node, model_b: Node, box: tuple[np.ndarray, np.ndarray], tolerance: float,
+            t_a: float = 0.0, t_b: float = 0.0) -> Collision:
+    """Section 5: two solids collide iff their intersection (R-conjunction) has at least one
+    component at the tolerance; inside ``box`` (world lo, hi)."""
+    from pipeline import ops
+    from pipeline.nodes.base import Node as _Node
+
+    class _Both(_Node):
+        kind = "collision"
+
+        def field(self, x, y, z, t):
+            return ops.r_and(model_a.field(x, y, z, t_a), model_b.field(x, y, z, t_b), "r0")
+
+    lo, hi = (np.asarray(b, float) for b in box)
+    if np.any(hi <= lo):
+        return Collision(False, 0, float(tolerance), 0)
+    size = float((hi - lo).max())
+    depth = depth_for(size, tolerance)
+    found = detect(_Both(None), lo, size, depth, 0.0, (lo, hi))
+    return Collision(found.count > 0, found.count, size / 2**depth, depth)

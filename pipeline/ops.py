@@ -95,10 +95,26 @@ def r_and(a, b, family: str = "r0", k: float = rf.SARDF_K):
     if family == "min_max":
         return aa.minimum(a, b)
     if family == "r0":
-        return a + b - aa.sqrt(aa.sqr(a) + aa.sqr(b))
+        return _monotone_hull(a + b - aa.sqrt(aa.sqr(a) + aa.sqr(b)), a, b)
     if family == "sardf":
         return _sardf_and_bound(a, b, k)
     raise ValueError(f"unknown R-function family {family!r}")
+
+
+def _monotone_hull(r: AffineForm, a: AffineForm, b: AffineForm) -> AffineForm:
+    """r0 is increasing in both arguments, so [r0(a_lo, b_lo), r0(a_hi, b_hi)] encloses it over
+    a box; where that interval is narrower than the affine form (wide operands, e.g. unions of
+    many nodes folded left, where sqr/sqrt widen the form at every step), use it instead."""
+    alo, ahi = a.interval()
+    blo, bhi = b.interval()
+    with np.errstate(invalid="ignore", over="ignore"):
+        lo = np.nan_to_num(rf.r_and(alo, blo, "r0"), nan=-np.inf)
+        hi = np.nan_to_num(rf.r_and(ahi, bhi, "r0"), nan=np.inf)
+        pad = 8.0 * np.finfo(np.float64).eps * (np.abs(alo) + np.abs(blo) + np.abs(ahi) + np.abs(bhi))
+    rlo, rhi = r.interval()
+    lo, hi = np.maximum(lo - pad, rlo), np.minimum(hi + pad, rhi)
+    tighter = (hi - lo) < (rhi - rlo)
+    return aa.select(tighter, AffineForm.from_interval(np.minimum(lo, hi), hi), r)
 
 
 def r_or(a, b, family: str = "r0", k: float = rf.SARDF_K):

@@ -28,7 +28,7 @@ import numpy as np
 from scipy.special import expit
 
 from pipeline.eikonal import EikonalResult
-from pipeline.grid import BlockGrid
+from pipeline.grid import BlockGrid, linear_transform, vdb, write_blocks
 from pipeline.spline import TricubicSpline
 
 STEPS = ("sigmoid", "tanh", "rational")
@@ -127,3 +127,17 @@ class HFRepField:
         return hfrep_field(f, self.smoothed_distance(p), self.step, self.slope)
 
     __call__ = evaluate
+
+
+def density_grid(res, ramp: float):
+    """Fog volume: 1 inside deeper than ``ramp``, falling linearly to 0 at the surface."""
+    d = res.distance
+    dens = np.where(res.inside & d.active, np.clip(d.values / ramp, 0.0, 1.0), 0.0).astype(np.float32)
+    blocks = BlockGrid(d.voxel_size, 0.0, d.origins, dens, dens > 0)
+    grid = vdb.FloatGrid(0.0)
+    grid.name = "density"
+    grid.transform = linear_transform(d.voxel_size)
+    grid.gridClass = vdb.GridClass.FOG_VOLUME
+    write_blocks(grid, blocks)
+    grid.prune()
+    return grid

@@ -177,3 +177,24 @@ def extra_zero_crossings(field: BlockGrid, reference: BlockGrid) -> dict:
         field.values.astype(np.float64), field.active, ref, ref_act, block_neighbours(field)
     )
     return {"extra_zero_crossings": int(extra), "edges_compared": int(edges)}
+
+
+def field_report(frep: BlockGrid, res, hf: BlockGrid) -> dict:
+    """approximate-distance-fields 1.2 / 2.3: |grad| statistics, deviation from the distance
+    near the boundary, extra zero crossings - for frep, surface and hfrep."""
+    from pipeline.eikonal import signed_distance_blocks
+
+    sd = signed_distance_blocks(res)  # negative inside
+    h = frep.voxel_size
+
+    def true_distance(points: np.ndarray) -> np.ndarray:  # FRep sign: positive inside
+        return -sd.sample_voxels(np.rint(points / h).astype(np.int64))
+
+    band = 3 * h
+    q = {
+        "frep": {"gradient": gradient_stats(frep), "deviation": distance_deviation(frep, true_distance, band)},
+        "surface": {"gradient": gradient_stats(sd)},
+        "hfrep": {"gradient": gradient_stats(hf), "deviation": distance_deviation(hf, true_distance, band),
+                  **extra_zero_crossings(hf, frep)},
+    }
+    return q

@@ -4,10 +4,11 @@ Each module has ``Params`` (pydantic, unknown keys forbidden), optional ``REQUIR
 that must run before it) and ``run(ctx, params) -> dict`` (stats for the manifest).
 """
 
-from stages import components, export, voxelise
+from stages import components, export, hfrep, voxelise
 
 REGISTRY = {
     "voxelise": voxelise,
     "components": components,
+    "hfrep": hfrep,
     "export": export,
 }

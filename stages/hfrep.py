@@ -1,21 +1,42 @@
 """hfrep: eikonal distance (FIM) -> ``surface`` level set, ``hfrep`` (hfrep eq. 21) and a
-``density`` fog volume; field-quality numbers for the manifest.
+``density`` fog volume; field-quality numbers for the manifest; attribute grids
+parameterised by distance (hfrep section 7, ``attributes:``).
 
 Library calls: pipeline.eikonal.solve_distance / surface_grid, pipeline.hfrep.hfrep_blocks,
-pipeline.quality.
+pipeline.quality, pipeline.attributes.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import AfterValidator, Field, field_validator, model_validator
 
+from pipeline.attributes import check_formula
 from pipeline.grid import frep_to_vdb
 from stages.base import StageParams
 
 REQUIRES = ("voxelise",)
+RESERVED = ("frep", "surface", "hfrep", "density", "component")
+AttrFormula = Annotated[str, AfterValidator(check_formula)]
+
+
+class Attribute(StageParams):
+    """One attribute ``F_A(d, p)`` (hfrep seed section 5.2): a float grid or an RGB Vec3S grid."""
+
+    name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_.-]*$", description="grid name")
+    formula: AttrFormula | None = Field(default=None, description="float attribute in x y z t d")
+    rgb: tuple[AttrFormula, AttrFormula, AttrFormula] | None = Field(
+        default=None, description="Vec3S attribute: three formulas in x y z t d")
+    outside: Literal["inactive", "surface"] = Field(
+        default="inactive", description="outside the object: no values, or the surface value (d = 0) out to the band")
+
+    @model_validator(mode="after")
+    def _one_kind(self):
+        if (self.formula is None) == (self.rgb is None):
+            raise ValueError("give exactly one of formula (a float grid) or rgb (three formulas, a Vec3S grid)")
+        return self
 
 
 class Params(StageParams):
@@ -27,6 +48,16 @@ class Params(StageParams):
         default=None, description="how far outside to solve, world units; 'domain' = everywhere; default 10 voxels")
     density: bool = Field(default=True, description="also write a 'density' fog volume (0..1) for Blender")
     quality: bool = Field(default=True, description="field-quality report into the manifest")
+    attributes: list[Attribute] = Field(default_factory=list, description="attribute grids of d, x, y, z, t")
+
+    @field_validator("attributes")
+    @classmethod
+    def _names(cls, v):
+        names = [a.name for a in v]
+        clash = sorted({n for n in names if n in RESERVED or names.count(n) > 1})
+        if clash:
+            raise ValueError(f"attribute names must be unique and differ from {', '.join(RESERVED)}: {clash}")
+        return v
 
     @field_validator("max_distance")
     @classmethod
@@ -59,4 +90,41 @@ def run(ctx, p: Params) -> dict:
         ctx.grids["density"].updateMetadata(meta)
     if p.quality:
         ctx.manifest.setdefault("quality", {}).update(field_report(frep, res, hf))
-    return dict(res.stats)
+    stats = dict(res.stats)
+    if p.attributes:
+        stats["attributes"] = _attributes(ctx, p, res, hf, band, meta)
+    return stats
+
+
+def _attributes(ctx, p: Params, res, hf, band: float, meta: dict) -> dict:
+    """Evaluate and store every attribute grid; a formula that is not finite is a config error."""
+    from pipeline import attributes as attr
+    from pipeline.config import line_of
+    from pipeline.errors import ConfigError
+
+    out = {}
+    for a_index, a in enumerate(p.attributes):
+        srcs = [a.formula] if a.formula is not None else list(a.rgb)
+        vox = attr.attribute_voxels(res, hf, a.outside, band)
+        try:
+            values = attr.evaluate_attribute([attr.AttributeFormula(s) for s in srcs], vox, ctx.job.t)
+        except attr.NonFiniteAttribute as e:
+            tail = ("formula",) if a.formula is not None else ("rgb", e.component)
+            path = _stage_path(ctx, p) + ("attributes", a_index) + tail
+            raise ConfigError.one(ctx.job.config_path, line_of(ctx.job.raw, path), path, str(e)) from None
+        grid = attr.attribute_grid(a.name, values, vox)
+        grid.updateMetadata({**meta, "attribute": a.name, "attribute_formulas": " ; ".join(srcs),
+                             "attribute_outside": a.outside})
+        ctx.grids[a.name] = grid
+        out[a.name] = {"type": grid.valueTypeName, "active_voxels": int(grid.activeVoxelCount())}
+    return out
+
+
+def _stage_path(ctx, p: Params) -> tuple:
+    """YAML path of this stage's parameters (``stages[i].hfrep`` or ``jobs[k].stages[i].hfrep``)."""
+    job = ctx.job
+    i = next(n for n, (_, q) in enumerate(job.stages) if q is p)
+    raw = job.raw if isinstance(job.raw, dict) else {}
+    entry = raw.get("jobs")[job.index[0]] if raw.get("jobs") else None
+    base = ("jobs", job.index[0], "stages") if isinstance(entry, dict) and "stages" in entry else ("stages",)
+    return base + (i, "hfrep")

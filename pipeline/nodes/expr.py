@@ -9,7 +9,9 @@ than unary minus, so -x^2 = -(x^2))::
     power  := atom ('^' unary)?
     atom   := number | name | name '(' expr (',' expr)* ')' | '(' expr ')'
 
-Names: x, y, z, t, pi, e. Functions: sqrt exp log sin cos abs min max (min/max take two or
+Names: x, y, z, t, pi, e, plus the extra variables a caller passes to ``parse_formula`` (attribute
+formulas of the ``hfrep`` stage add the distance ``d``; model ``expr`` nodes add none, so ``d``
+is an unknown name there). Functions: sqrt exp log sin cos abs min max (min/max take two or
 more arguments) and pow(a, b). The parsed nodes are ordinary nodes with a ``field`` method, so
 formulas get evaluation and affine bounds from the same machinery as every other node.
 Constant sub-expressions are folded; a constant division by zero or a constant that is not
@@ -86,6 +88,18 @@ class Var(_ExprNode):
         return {"x": x, "y": y, "z": z, "t": t}[self.args[0]]
 
 
+class Param(_ExprNode):
+    """An extra variable (e.g. the distance ``d`` of attribute formulas, hfrep seed section 7).
+
+    Its value is read at evaluation time from the mapping given to ``parse_formula``; the
+    caller stores arrays there (shaped like x, y, z) before evaluating the tree.
+    """
+
+    def field(self, x, y, z, t):
+        name, env = self.args
+        return env[name]
+
+
 class BinOp(_ExprNode):
     def field(self, x, y, z, t):
         op, a, b = self.args
@@ -135,9 +149,10 @@ class Func(_ExprNode):
 
 
 class _Parser:
-    def __init__(self, src: str):
+    def __init__(self, src: str, variables: dict[str, Any] | None = None):
         self.toks = _tokenise(src)
         self.i = 0
+        self.variables = variables
 
     @property
     def tok(self) -> _Tok:
@@ -207,10 +222,12 @@ class _Parser:
         n = tok.text
         if n in ("x", "y", "z", "t"):
             return Var(n)
+        if self.variables is not None and n in self.variables:
+            return Param(n, self.variables)
         if n in _CONSTS:
             return Const(_CONSTS[n])
         if n not in _FUNCS:
-            known = ", ".join(["x", "y", "z", "t", *_CONSTS, *_FUNCS])
+            known = ", ".join(["x", "y", "z", "t", *(self.variables or ()), *_CONSTS, *_FUNCS])
             raise FormulaError(f"unknown name {n!r} (known: {known})", tok.col)
         self.take("(")
         args = [self.expr()]
@@ -241,9 +258,18 @@ def _fold(node: Node, col: int) -> Node:
     return Const(val)
 
 
-def parse_formula(src: str) -> Node:
-    """Parse a formula into expression nodes; raises FormulaError with the column."""
-    return _Parser(src).parse()
+def parse_formula(src: str, variables: dict[str, Any] | None = None) -> Node:
+    """Parse a formula into expression nodes; raises FormulaError with the column.
+
+    ``variables``: extra variable names (keys) beyond x, y, z, t; the parsed tree reads their
+    values from this same mapping when evaluated, so fill it before calling ``field``. Names
+    of constants and functions cannot be shadowed (x, y, z, t are checked first too).
+    """
+    if variables:
+        clash = sorted(set(variables) & ({"x", "y", "z", "t"} | set(_CONSTS) | set(_FUNCS)))
+        if clash:
+            raise ValueError(f"extra variables may not reuse built-in names: {clash}")
+    return _Parser(src, variables).parse()
 
 
 @register("expr")

@@ -53,10 +53,10 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def cmd_validate(args) -> int:
-    from pipeline.config import load_job
+    from pipeline.config import load_jobs
 
-    job = load_job(args.config)
-    print(yaml.safe_dump(job.normalised, sort_keys=False), end="")
+    jobs = load_jobs(args.config)
+    print(yaml.safe_dump_all([j.normalised for j in jobs], sort_keys=False), end="")
     return EXIT_OK
 
 

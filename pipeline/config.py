@@ -161,6 +161,10 @@ class _Ctx:
     file: str
     root: Any
     base_dir: Path
+    #: the job being built: node classes with ``uses_domain = True`` (e.g. ``hfrep``) get
+    #: ``domain=`` and ``t=`` for defaults that depend on the job (bounds, voxel size)
+    domain: Any = None
+    t: float = 0.0
 
     def fail(self, path: tuple, message: str) -> ConfigError:
         return ConfigError.one(self.file, line_of(self.root, path), path, message)
@@ -195,8 +199,9 @@ def build_node(raw: Any, path: tuple, ctx: _Ctx) -> Node:
         params = cls.Params.model_validate(body)
     except ValidationError as e:
         raise ConfigError(validation_problems(e, ctx.file, ctx.root, here, cls.Params, strip)) from None
+    job_args = {"domain": ctx.domain, "t": ctx.t} if getattr(cls, "uses_domain", False) else {}
     try:
-        return cls(params, where=_fmt(here))
+        return cls(params, where=_fmt(here), **job_args)
     except FormulaError as e:
         raise ctx.fail(here + (() if strip else ("formula",)), f"bad formula: {e}") from None
     except InputError as e:
@@ -402,6 +407,7 @@ def _entry_jobs(ctx: _Ctx, top: TopConfig, sha: str, base: tuple, index: int, na
         job_name = name if f is None else f"{name}_f{f:04d}"
         if select is not None and job_name != select:
             continue
+        ctx.domain, ctx.t = domain, tf
         model = build_node(model_raw, base + ("model",), ctx)  # each job owns its tree
         job = Job(job_name, ctx.file, sha, domain, model, stages, tf, ctx.root, index=(index, f or 0),
                   bricks=top.bricks.size if top.bricks else None, executor=top.executor)

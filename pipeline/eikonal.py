@@ -77,8 +77,9 @@ def block_neighbours(grid: BlockGrid) -> np.ndarray:
 
 # --- Numba kernels ----------------------------------------------------------------------
 @njit(cache=True, inline="always")
-def _get(d, nbr, b, i, j, k):
-    """Value at local (i, j, k) of block b where one index may be -1 or 8 (face ghost)."""
+def resolve_voxel(nbr, b, i, j, k):
+    """(block, i, j, k) of a voxel given in block b's local coordinates, where one index may be
+    -1 or 8 (a face neighbour in the next block); block -1 when that block does not exist."""
     if i < 0:
         b, i = nbr[b, 0], 7
     elif i > 7:
@@ -91,6 +92,13 @@ def _get(d, nbr, b, i, j, k):
         b, k = nbr[b, 4], 7
     elif k > 7:
         b, k = nbr[b, 5], 0
+    return b, i, j, k
+
+
+@njit(cache=True, inline="always")
+def _get(d, nbr, b, i, j, k):
+    """Value at local (i, j, k) of block b where one index may be -1 or 8 (face ghost)."""
+    b, i, j, k = resolve_voxel(nbr, b, i, j, k)
     if b < 0:
         return np.inf
     return d[b, i, j, k]
@@ -300,18 +308,7 @@ def _axis_nb(f, fact, nbr, b, i, j, k, axis, side):
 
 @njit(cache=True, inline="always")
 def _get_active(a, nbr, b, i, j, k):
-    if i < 0:
-        b, i = nbr[b, 0], 7
-    elif i > 7:
-        b, i = nbr[b, 1], 0
-    elif j < 0:
-        b, j = nbr[b, 2], 7
-    elif j > 7:
-        b, j = nbr[b, 3], 0
-    elif k < 0:
-        b, k = nbr[b, 4], 7
-    elif k > 7:
-        b, k = nbr[b, 5], 0
+    b, i, j, k = resolve_voxel(nbr, b, i, j, k)
     if b < 0:
         return False
     return a[b, i, j, k]

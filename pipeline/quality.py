@@ -21,7 +21,7 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
-from pipeline.eikonal import block_neighbours
+from pipeline.eikonal import block_neighbours, resolve_voxel
 from pipeline.grid import BlockGrid
 
 
@@ -40,18 +40,7 @@ def _nb(vals, act, nbr, b, i, j, k, f):
         k -= 1
     else:
         k += 1
-    if i < 0:
-        b, i = nbr[b, 0], 7
-    elif i > 7:
-        b, i = nbr[b, 1], 0
-    elif j < 0:
-        b, j = nbr[b, 2], 7
-    elif j > 7:
-        b, j = nbr[b, 3], 0
-    elif k < 0:
-        b, k = nbr[b, 4], 7
-    elif k > 7:
-        b, k = nbr[b, 5], 0
+    b, i, j, k = resolve_voxel(nbr, b, i, j, k)
     if b < 0:
         return 0.0, False
     return vals[b, i, j, k], act[b, i, j, k]

@@ -175,6 +175,8 @@ _CHILD_IDX = np.array([[int(np.dot(o + c, (9, 3, 1))) for c in _CORNERS] for o i
 def _child_corner_values(cache: _CornerCache, parents: np.ndarray, pvals: np.ndarray, scale: int) -> np.ndarray:
     """Corner values of the 8 children of every parent, (P*8, 8): the parent's corners are
     reused and only the 19 new lattice points per parent are evaluated (shared ones once)."""
+    if len(parents) == 0:
+        return np.zeros((0, 8))
     lat = np.empty((len(parents), 27))
     lat[:, _EVEN27] = pvals[:, _FROM_PARENT]
     pts = (2 * parents[:, None, :] + _LAT27[None, ~_EVEN27]) * scale
@@ -617,7 +619,9 @@ class ClusterField:
     def __init__(self, comp: Components, label: int, method: str = "surface", clamp: float | None = None):
         self.comp, self.label, self.method = comp, int(label), method
         tree = comp.tree
-        self.clamp = float(clamp if clamp is not None else 4.0 * tree.finest)
+        # the distance is kept to 4 cells around the cluster, the cell union to 1 cell (its
+        # evaluation visits every merged box within the clamp, so a short reach keeps it local)
+        self.clamp = float(clamp if clamp is not None else (4.0 if method == "surface" else 1.0) * tree.finest)
         if method == "surface":
             lo, hi = boundary_faces(comp, label)
         elif method == "cells":

@@ -1,0 +1,459 @@
+"""Components seed: detection (Algorithm 1 + section 4.2), Algorithm 2, separation (section 4.3),
+collision (section 5), the components stage and the collide command."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scipy import ndimage
+
+from pipeline import components as cc
+from pipeline import rfunctions as rf
+from pipeline.cli import main
+from pipeline.config import _Ctx, build_node
+from pipeline.grid import vdb
+from pipeline.nodes import REGISTRY
+
+FAST = settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+DEMO = {"difference": [{"superellipsoid": {"radii": [1, 1, 1], "exponents": [0.3, 0.3]}},
+                       {"box": {"min": [-1.3, -0.02, -1.3], "max": [1.3, 0.02, 1.3]}}]}
+NOISE = ("81 - 100*x^2 - 100*y^2 - 100*z^2 + (3.8*sin(15*x) + 1.6*sin(11.1*x + 1.1*sin(15*x)))"
+         " * (3.8*sin(15*y) + 1.3*sin(11.1*x + 1.1*sin(15*x)))"
+         " * (3.8*sin(15*z) + 2.6*sin(11.1*x + 1.1*sin(15*x)))")
+
+
+def node(raw: dict):
+    return build_node(raw, ("model",), _Ctx("test", raw, Path(".")))
+
+
+def sphere(c, r) -> dict:
+    return {"sphere": {"center": list(c), "radius": r}}
+
+
+def cube(lo: float = -1.0, size: float = 2.0) -> tuple[np.ndarray, float]:
+    return np.full(3, lo), size
+
+
+# --- detection --------------------------------------------------------------------------------------
+
+
+@FAST
+@given(n=st.integers(1, 5), r=st.floats(0.08, 0.15), shift=st.floats(0.0, 0.05))
+def test_n_disjoint_spheres_give_n(n, r, shift):
+    centres = [(-0.8 + shift + 0.38 * i, 0.1 * i - 0.2, 0.0) for i in range(n)]
+    model = node({"union": [sphere(c, r) for c in centres]})
+    found = cc.detect(model, *cube(), 7)  # cell 0.0156; gaps >= 0.08 > 2 cells
+    assert found.count == n
+    lab = cc.point_labels(found, np.array(centres))
+    assert sorted(lab.tolist()) == list(range(1, n + 1))  # scan order = order along x
+    assert np.allclose(found.volumes, 4 / 3 * np.pi * r**3, rtol=0.05)
+    assert np.all(found.volume_bounds[:, 0] <= found.volumes) and np.all(found.volumes <= found.volume_bounds[:, 1])
+
+
+@FAST
+@given(offset=st.floats(-0.03, 0.03), depth=st.integers(6, 7))
+def test_gap_larger_than_two_cells_gives_two_touching_gives_one(offset, depth):
+    lo, size = cube()
+    cell = size / 2**depth
+    r = 0.3
+    gap = 2.5 * cell
+    apart = node({"union": [sphere((offset - r - gap / 2, 0, 0), r), sphere((offset + r + gap / 2, 0, 0), r)]})
+    assert cc.detect(apart, lo, size, depth).count == 2
+    touching = node({"union": [sphere((offset - r, 0.01, 0), r), sphere((offset + r, 0.01, 0), r)]})
+    assert cc.detect(touching, lo, size, depth).count == 1
+
+
+def test_torus_gives_one_and_its_hole_is_not_filled():
+    model = node({"torus": {"center": [0, 0, 0], "major": 0.6, "minor": 0.15}})
+    found = cc.detect(model, *cube(), 7)
+    assert found.count == 1
+    assert cc.point_labels(found, np.array([[0.6, 0, 0], [-0.6, 0, 0]])).tolist() == [1, 1]
+    assert found.tree.locate(np.array([[0.0, 0.0, 0.0]]))[0] == -1  # the hole holds no kept cell
+    assert found.volumes[0] == pytest.approx(2 * np.pi**2 * 0.6 * 0.15**2, rel=0.03)
+
+
+def test_demo_model_gives_two():
+    found = cc.detect(node(DEMO), np.full(3, -1.25), 2.5, 7)
+    assert found.count == 2
+    lab = cc.point_labels(found, np.array([[0, -0.5, 0], [0, 0.5, 0]]))
+    assert lab.tolist() == [1, 2]
+    assert found.volumes[0] == pytest.approx(found.volumes[1], rel=1e-9)
+
+
+def test_continuation_off_is_plain_affine_subdivision_and_agrees():
+    model = node({"union": [sphere((-0.4, 0, 0), 0.3), sphere((0.4, 0, 0), 0.3)]})
+    on = cc.enumerate_cells(model, *cube(), 7)
+    off = cc.enumerate_cells(model, *cube(), 7, continuation=False)
+    assert on.stats["affine_skipped"] > 0 and off.stats["affine_skipped"] == 0
+    assert off.stats["affine_tests"] > on.stats["affine_tests"]
+    assert cc.label_cells(on).count == cc.label_cells(off).count == 2
+    assert on.stats["border_cells"] <= off.stats["border_cells"]  # corners never overestimate
+
+
+def test_continuation_recovers_cells_the_descent_did_not_reach():
+    model = node(sphere((0, 0, 0), 0.5))
+    vals = np.array([[1.0, -1, -1, -1, -1, -1, -1, -1]])  # only the edges at corner 0 change sign
+    have = np.sort(cc.pack(np.array([[5, 5, 5]])))
+    nb = cc._unique_rows(cc._missing_edge_neighbours(np.array([[5, 5, 5]]), vals, have, 64))
+    assert {tuple(r) for r in nb} == {(4, 4, 5), (4, 5, 4), (4, 5, 5), (5, 4, 4), (5, 4, 5), (5, 5, 4)}
+    # an unclipped descent reaches every cell across a sign-changing edge itself
+    full = cc.enumerate_cells(model, *cube(), 6)
+    assert full.stats["continuation_cells"] == 0 and full.stats["border_cells"] > 0
+
+
+@FAST
+@given(seed=st.integers(0, 10_000), density=st.floats(0.2, 0.45))
+def test_marking_with_propagation_matches_scipy_on_mixed_depths(seed, density):
+    """Section 4.2 on a random octree: finest cells from a random mask, with every full 2x2x2
+    block replaced by its parent (Figure 1: same level, finer and coarser neighbours)."""
+    rng = np.random.default_rng(seed)
+    mask = rng.random((16, 16, 16)) < density
+    mask[4:12, 4:12, 4:12] |= rng.random() < 0.5  # sometimes a solid block that coarsens
+    ref, nref = ndimage.label(mask)
+    blocks = mask.reshape(8, 2, 8, 2, 8, 2).all(axis=(1, 3, 5))
+    fine = mask & ~np.repeat(np.repeat(np.repeat(blocks, 2, 0), 2, 1), 2, 2)
+    coords = np.concatenate([np.argwhere(fine), np.argwhere(blocks)])
+    level = np.concatenate([np.full(fine.sum(), 4), np.full(blocks.sum(), 3)])
+    n = len(level)
+    tree = cc.Octree(np.zeros(3), 1.0, 4, level, coords, np.full(n, cc.BORDER, np.int8), np.full(n, 0.5))
+    comp = cc.label_cells(tree)
+    assert comp.count == nref
+    centres = (coords + 0.5) / 2.0**level[:, None]
+    dense = ref[tuple(np.floor(centres * 16).astype(int).T)]
+    pairs = set(zip(comp.labels.tolist(), dense.tolist(), strict=True))
+    assert len(pairs) == nref  # the two labellings are the same partition
+
+
+def test_algorithm2_coarsest_level_keeps_the_count():
+    model = node({"union": [sphere((-0.5, 0, 0), 0.3), sphere((0.5, 0, 0), 0.3)]})
+    found = cc.detect(model, *cube(), 8)
+    coarse, mapping = cc.coarsest_same_count(found)
+    assert coarse.count == found.count == 2
+    assert coarse.tree.depth < found.tree.depth
+    assert cc.label_cells(cc.truncate(found.tree, coarse.tree.depth - 1)).count != 2
+    assert sorted(mapping.values()) == [1, 2]
+    assert len(coarse.tree) < len(found.tree)
+
+
+def test_solid_noise_matches_dense_label_at_the_same_tolerance():
+    """Appendix A. Reference 1: the field sampled densely on the lattice of cell corners, a cell
+    kept when one of its corners is positive (the finest-level rule of Algorithm 1), labelled by
+    scipy.ndimage.label with face connectivity: the counts must be equal. Reference 2: a 1.5x
+    finer centre-sampled labelling; each of its large pieces must fall in one component, and
+    pieces that share a component must be linked by gaps below the two-cell resolution
+    (section 4.2)."""
+    model = node({"expr": NOISE})
+    lo, hi = cc.enclosing_box(model)
+    assert np.all(lo > -1.8) and np.all(hi < 1.8)
+    origin, size, depth = np.full(3, -1.8), 3.6, 7
+    found = cc.detect(model, origin, size, depth)
+    n = 2**depth
+    ax = origin[0] + np.arange(n + 1) * size / n
+    grid = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    pos = (model.evaluate(grid) > 0).reshape(n + 1, n + 1, n + 1)
+    cells = np.zeros((n, n, n), bool)
+    for c in cc._CORNERS:
+        cells |= pos[c[0]:c[0] + n, c[1]:c[1] + n, c[2]:c[2] + n]
+    _, nref = ndimage.label(cells)
+    assert found.count == nref > 50
+    m = 3 * n // 2
+    fine_ax = origin[0] + (np.arange(m) + 0.5) * size / m
+    fine = np.stack(np.meshgrid(fine_ax, fine_ax, fine_ax, indexing="ij"), -1).reshape(-1, 3)
+    ref, _ = ndimage.label((model.evaluate(fine) > 0).reshape(m, m, m))
+    ref = ref.reshape(-1)
+    order = np.argsort(ref, kind="stable")
+    bounds = np.searchsorted(ref[order], np.arange(ref.max() + 2))
+    pieces = [fine[order[bounds[k]:bounds[k + 1]]] for k in range(1, ref.max() + 1)]
+    big = [p for p in pieces if len(p) > 100]
+    labels = [set(cc.point_labels(found, p).tolist()) for p in big]
+    assert all(len(s) == 1 for s in labels)
+    reach = 2 * np.sqrt(3) * size / n + np.sqrt(3) * size / m
+    _assert_linked_groups(big, [next(iter(s)) for s in labels], reach)
+
+
+def _assert_linked_groups(pieces: list, labels: list, reach: float) -> None:
+    """Pieces with the same label form a connected graph when pieces closer than ``reach``
+    are linked: merging happens only below the resolution."""
+    from scipy.spatial import cKDTree
+
+    for lab in set(labels):
+        group = [p for p, q in zip(pieces, labels, strict=True) if q == lab]
+        trees = [cKDTree(p) for p in group]
+        linked, todo = {0}, [0]
+        while todo:
+            i = todo.pop()
+            for j in range(len(group)):
+                if j not in linked and trees[i].sparse_distance_matrix(trees[j], reach).nnz:
+                    linked.add(j)
+                    todo.append(j)
+        assert len(linked) == len(group)
+
+
+# --- separation -------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def demo_pieces():
+    box = [[-1.05, -1.05, -1.05], [1.05, 1.05, 1.05]]
+    pieces = {method: [node({"component": {"of": DEMO, "index": k, "method": method, "depth": 7,
+                                           "adaptive": False, "bounds": box}}) for k in (1, 2)]
+              for method in ("surface", "cells")}
+    for method in ("surface", "cells"):  # Fig. 3f: the second piece turned and moved
+        pieces[f"moved {method}"] = node({"translate": {"by": [0.3, 0, 0], "of": {"rotate": {
+            "angle": 30, "axis": "z", "of": {"component": {"of": DEMO, "index": 2, "method": method, "depth": 7,
+                                                           "bounds": box}}}}}})
+    return pieces
+
+
+@pytest.mark.parametrize("method", ["surface", "cells"])
+def test_separated_fields_are_positive_only_inside_their_piece(demo_pieces, method):
+    f = node(DEMO)
+    pts = np.random.default_rng(1).uniform(-1.2, 1.2, (20000, 3))
+    fv = f.evaluate(pts)
+    fk = [p.evaluate(pts) for p in demo_pieces[method]]
+    side = np.where(pts[:, 1] < 0, 1, 2)
+    for k in (1, 2):
+        assert np.all(fv[fk[k - 1] > 0] > 0)
+        assert np.all(side[fk[k - 1] > 0] == k)
+        assert np.all(fk[k - 1][(fv > 1e-3) & (side == k)] > 0)
+    union = rf.r_or(fk[0], fk[1], "r0")
+    strict = np.abs(fv) > 1e-9
+    assert np.array_equal(union[strict] > 0, fv[strict] > 0)  # the pieces together are the object
+
+
+@pytest.mark.parametrize("method", ["surface", "cells"])
+def test_separated_field_is_zero_on_its_boundary(demo_pieces, method):
+    f = node(DEMO)
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    d[:, 1] = -np.abs(d[:, 1]) - 0.2  # rays from inside piece 1 to its outer surface
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    start = np.array([0.0, -0.5, 0.0])
+    a, b = np.zeros(len(d)), np.full(len(d), 2.0)
+    for _ in range(60):  # bisection for the zero of f along each ray
+        mid = 0.5 * (a + b)
+        inside = f.evaluate(start + mid[:, None] * d) > 0
+        a, b = np.where(inside, mid, a), np.where(inside, b, mid)
+    surf = start + a[:, None] * d
+    assert np.all(np.abs(f.evaluate(surf)) < 1e-9)
+    assert np.all(np.abs(demo_pieces[method][0].evaluate(surf)) < 1e-8)
+
+
+@pytest.mark.parametrize("method", ["surface", "cells"])
+def test_no_internal_zeros_on_shared_cell_faces(demo_pieces, method):
+    piece = demo_pieces[method][0]
+    cf = piece.cluster(0.0)
+    tree = cf.comp.tree
+    c = tree.finest
+    # lines along x on cell edges (y, z on the cell lattice) through piece 1, sampled on the
+    # cell faces x = origin + i c and between them
+    ys = tree.origin[1] + c * np.arange(8, 56, 5)
+    zs = tree.origin[2] + c * np.arange(20, 110, 9)
+    xs = np.sort(np.concatenate([tree.origin[0] + c * np.arange(2**tree.depth + 1),
+                                 np.linspace(-1.1, 1.1, 3001)]))
+    yy, zz, xx = np.meshgrid(ys[ys < -0.05], zs[np.abs(zs) < 0.9], xs, indexing="ij")
+    pts = np.stack([xx, yy, zz], -1).reshape(-1, 3)
+    fv = node(DEMO).evaluate(pts)
+    inner = fv > 1e-4
+    assert inner.sum() > 10000
+    assert np.all(piece.evaluate(pts[inner]) > 0)
+    assert np.all(cf.value(pts[inner]) > 0)
+
+
+@FAST
+@given(x=st.floats(-1.0, 0.9), y=st.floats(-1.0, 0.9), z=st.floats(-1.0, 0.9), w=st.floats(1e-3, 0.3))
+def test_component_bound_encloses_values_under_a_transform(demo_pieces, x, y, z, w):
+    """Fig. 3f: a separated piece is an ordinary node: transformed, its bound still encloses it."""
+    lo, hi = np.array([[x, y, z]]), np.array([[x + w, y + w, z + w]])
+    pts = np.random.default_rng(3).uniform(lo, hi, (64, 3))
+    for method in ("surface", "cells"):
+        piece = demo_pieces[method][1]
+        for n in (piece, demo_pieces[f"moved {method}"]):
+            blo, bhi = n.bound(lo, hi)
+            v = n.evaluate(pts)
+            assert np.all(v >= blo[0] - 1e-12) and np.all(v <= bhi[0] + 1e-12)
+        glo, ghi = piece.cluster(0.0).bound(lo, hi)
+        g = piece.cluster(0.0).value(pts)
+        assert np.all(g >= glo[0] - 1e-12) and np.all(g <= ghi[0] + 1e-12)
+
+
+def test_recombined_pieces_voxelise(tmp_path):
+    """Fig. 3f: the second piece moved away and united with the first; four-thousandths apart
+    before, they now are two well separated components."""
+    cfg = tmp_path / "fig3f.yaml"
+    cfg.write_text("""name: fig3f
+domain: {bounds: [[-1.2, -1.2, -1.2], [1.2, 1.6, 1.2]], resolution: 48}
+model:
+  union:
+    - component: {of: &demo {difference: [{superellipsoid: {radii: [1, 1, 1], exponents: [0.3, 0.3]}},
+                                          {box: {min: [-1.3, -0.02, -1.3], max: [1.3, 0.02, 1.3]}}]},
+                  index: 1, depth: 7, bounds: &box [[-1.05, -1.05, -1.05], [1.05, 1.05, 1.05]]}
+    - translate: {by: [0, 0.4, 0], of: {component: {of: *demo, index: 2, depth: 7, bounds: *box}}}
+stages:
+  - voxelise: {band: 2}
+  - components: {}
+""")
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+    m = json.loads((tmp_path / "out" / "fig3f" / "manifest.json").read_text())
+    assert m["components"]["count"] == 2
+
+
+def test_bad_component_index_is_a_config_error(tmp_path, capsys):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("""name: bad
+domain: {bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 32}
+model:
+  component: {of: {sphere: {radius: 0.5}}, index: 2, depth: 5}
+stages:
+  - voxelise: {}
+""")
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "bad.yaml:4" in err and "component index 2" in err
+
+
+# --- collision (section 5, Fig. 6) --------------------------------------------------------------------
+
+
+def _microstructure() -> dict:
+    struts = []
+    for a, axis in enumerate("xyz"):
+        for u in (-0.4, 0.0, 0.4):
+            for v in (-0.4, 0.0, 0.4):
+                c = [0.0, 0.0, 0.0]
+                others = [i for i in range(3) if i != a]
+                c[others[0]], c[others[1]] = u, v
+                struts.append({"cylinder": {"center": c, "radius": 0.08, "axis": axis, "height": 1.8}})
+    return {"intersection": [{"union": struts}, sphere((0, 0, 0), 0.85)]}
+
+
+def _needle(y: float) -> dict:
+    """A vertical needle between the struts, |y - 0.105| from the x-struts at y = 0."""
+    return {"cylinder": {"center": [0.2, y, 0.2], "radius": 0.025, "axis": "z", "height": 1.2}}
+
+
+@pytest.mark.parametrize(("y", "expect"), [(0.2, False), (0.105 + 0.016, False), (0.105 - 0.024, True)])
+def test_needle_and_microstructure(y, expect):
+    box = (np.full(3, -1.0), np.full(3, 1.0))
+    res = cc.collide(node(_microstructure()), node(_needle(y)), box, 0.008)
+    assert res.tolerance <= 0.008
+    assert res.collide is expect
+    assert (res.count > 0) is expect
+
+
+def test_collide_command(tmp_path, capsys):
+    import yaml
+
+    def cfg(name: str, model: dict) -> Path:
+        p = tmp_path / f"{name}.yaml"
+        p.write_text(yaml.safe_dump({"name": name, "domain": {"bounds": [[-1, -1, -1], [1, 1, 1]], "voxel_size": 0.008},
+                                     "model": model, "stages": [{"voxelise": {}}]}))
+        return p
+
+    micro = cfg("micro", _microstructure())
+    assert main(["collide", str(micro), str(cfg("out", _needle(0.105 + 0.016)))]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == "collision: no"
+    assert main(["collide", str(micro), str(cfg("in", _needle(0.105 - 0.024)))]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "collision: yes" and out[1].startswith("tolerance: ")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: [unclosed\n")
+    assert main(["collide", str(micro), str(bad)]) == 2
+
+
+# --- the stage -------------------------------------------------------------------------------------
+
+
+TWO = """name: two
+domain: {{bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 64}}
+model:
+  union:
+    - sphere: {{center: [-0.5, 0, 0], radius: 0.35}}
+    - sphere: {{center: [0.5, 0, 0], radius: {r2}}}
+stages:
+  - voxelise: {{band: 3}}
+  - components: {params}
+  - export: {{vdb: true}}
+"""
+
+
+def _run(tmp_path: Path, r2: float, params: str) -> tuple[dict, Path]:
+    cfg = tmp_path / "two.yaml"
+    cfg.write_text(TWO.format(r2=r2, params=params))
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+    out = tmp_path / "out" / "two"
+    return json.loads((out / "manifest.json").read_text()), out
+
+
+def _grid_values(path: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    g = vdb.read(str(path), name)
+    lo, hi = g.evalActiveVoxelBoundingBox()
+    arr = np.zeros([h - l + 1 for l, h in zip(lo, hi, strict=True)], np.float32)
+    g.copyToArray(arr, ijk=lo)
+    return arr, np.asarray(lo)
+
+
+def test_run_two_spheres_labels_every_active_voxel(tmp_path):
+    m, out = _run(tmp_path, 0.35, "{}")
+    assert m["components"]["count"] == 2
+    assert m["components"]["volumes"] == pytest.approx([4 / 3 * np.pi * 0.35**3] * 2, rel=0.05)
+    assert m["grids"]["component"]["active_voxels"] == m["grids"]["frep"]["active_voxels"]
+    comp = vdb.read(str(out / "two.vdb"), "component")
+    assert comp.metadata["component_count"] == 2
+    arr, lo = _grid_values(out / "two.vdb", "component")
+    assert set(np.unique(arr).tolist()) == {0.0, 1.0, 2.0}
+    h = 2.0 / 64
+    xs = (np.nonzero(arr)[0] + lo[0]) * h
+    assert np.all(arr[np.nonzero(arr)] == np.where(xs < 0, 1.0, 2.0))
+
+
+def test_keep_largest_removes_the_small_piece_and_separate_writes_pieces(tmp_path):
+    m, out = _run(tmp_path, 0.2, "{keep: largest, separate: true}")
+    c = m["components"]
+    assert c["count"] == 2 and c["kept"] == [1] and c["files"] == ["two_component_1.vdb"]
+    frep, lo = _grid_values(out / "two.vdb", "frep")
+    h = 2.0 / 64
+    active_x = (np.nonzero(np.abs(frep) < 0.08)[0] + lo[0]) * h
+    assert active_x.max() < 0.0  # nothing of the small sphere at x = 0.5 is left
+    g = vdb.read(str(out / "two.vdb"), "frep")
+    acc = g.getConstAccessor()
+    assert acc.getValue((16, 0, 0)) < 0  # the small sphere's centre is outside now
+    assert acc.getValue((-16, 0, 0)) > 0
+    piece = vdb.read(str(out / "two_component_1.vdb"), "frep").getConstAccessor()
+    assert piece.getValue((-16, 0, 0)) > 0 and piece.getValue((16, 0, 0)) < 0
+    assert {o["path"] for o in m["outputs"]} >= {"two.vdb", "two_component_1.vdb"}
+
+
+def test_keep_min_volume_and_bad_params(tmp_path, capsys):
+    m, _ = _run(tmp_path, 0.2, "{keep: {min_volume: 0.05}}")  # volumes 0.18 and 0.034
+    assert m["components"]["kept"] == [1]
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text(TWO.format(r2=0.2, params="{tolerance: 0.01, depth: 5}"))
+    assert main(["validate", str(cfg)]) == 2
+    assert "tolerance or depth" in capsys.readouterr().err
+
+
+# --- meshes (BSP-field node) ----------------------------------------------------------------------
+
+
+KNOT = Path("/work/shared/meshes/knot2.off")
+SLOW = os.environ.get("FREPVDB_SLOW_TESTS") == "1"
+
+
+@pytest.mark.skipif(not KNOT.exists() or "mesh" not in REGISTRY, reason="needs /work/shared/meshes and the mesh node")
+@pytest.mark.skipif(not SLOW, reason="~100 s (BSP-field build and evaluation); set FREPVDB_SLOW_TESTS=1")
+def test_two_component_knot_mesh():
+    model = node({"mesh": {"path": str(KNOT)}})
+    v = np.loadtxt(KNOT, skiprows=2, max_rows=5760)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    size = 1.1 * float((hi - lo).max())
+    pad = 0.05 * size
+    found = cc.detect(model, 0.5 * (lo + hi) - size / 2, size, 5, region=(lo - pad, hi + pad))
+    assert found.count == 2

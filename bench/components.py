@@ -1,0 +1,151 @@
+"""Benchmark of the components stage (components seed) against dense anchors.
+
+1. Sparse enumeration + labelling (Algorithm 1 + section 4.2) vs a uniform grid of the same cell
+   size labelled with ``scipy.ndimage.label`` (face connectivity), depths 7..10: wall time, peak
+   memory (RSS above the warmed-up baseline, each run in a fresh process), counts.
+2. Algorithm 1 with corner control range and continuation vs plain revised-affine subdivision
+   ([17], ``continuation=False``): the trend of the paper's Table 1.
+
+Run: ``.venv/bin/python bench/components.py`` (prints Markdown tables).
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+TWO_SPHERES = {"union": [{"sphere": {"center": [-0.5, 0, 0], "radius": 0.35}},
+                         {"sphere": {"center": [0.5, 0, 0], "radius": 0.35}}]}
+DEMO = {"difference": [{"superellipsoid": {"radii": [1, 1, 1], "exponents": [0.3, 0.3]}},
+                       {"box": {"min": [-1.3, -0.02, -1.3], "max": [1.3, 0.02, 1.3]}}]}
+NOISE = {"expr": "81 - 100*x^2 - 100*y^2 - 100*z^2 + (3.8*sin(15*x) + 1.6*sin(11.1*x + 1.1*sin(15*x)))"
+                 " * (3.8*sin(15*y) + 1.3*sin(11.1*x + 1.1*sin(15*x)))"
+                 " * (3.8*sin(15*z) + 2.6*sin(11.1*x + 1.1*sin(15*x)))"}
+MODELS = {"two spheres": (TWO_SPHERES, -1.0, 2.0), "demo (Fig. 3)": (DEMO, -1.25, 2.5),
+          "solid noise (Fig. 4)": (NOISE, -1.8, 3.6)}
+
+
+def _node(raw: dict):
+    from pipeline.config import _Ctx, build_node
+
+    return build_node(raw, ("model",), _Ctx("bench", raw, Path(".")))
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def sparse(model, lo: float, size: float, depth: int) -> dict:
+    from pipeline import components as cc
+
+    cc.detect(model, np.full(3, lo), size, 4)  # warm up (Numba cache, imports)
+    base = _rss_mb()
+    t0 = time.perf_counter()
+    found = cc.detect(model, np.full(3, lo), size, depth)
+    return {"seconds": time.perf_counter() - t0, "peak_mb": _rss_mb() - base, "count": found.count,
+            "cells": len(found.tree)}
+
+
+def dense(model, lo: float, size: float, depth: int) -> dict:
+    """f at the centres of a uniform grid of the same cell size (slab by slab), f > 0, label."""
+    from scipy import ndimage
+
+    n = 2**depth
+    base = _rss_mb()
+    t0 = time.perf_counter()
+    ax = lo + (np.arange(n) + 0.5) * size / n
+    yy, zz = np.meshgrid(ax, ax, indexing="ij")
+    inside = np.empty((n, n, n), bool)
+    for i in range(n):
+        pts = np.stack([np.full(n * n, ax[i]), yy.ravel(), zz.ravel()], axis=1)
+        inside[i] = (model.evaluate(pts) > 0).reshape(n, n)
+    _, count = ndimage.label(inside)
+    return {"seconds": time.perf_counter() - t0, "peak_mb": _rss_mb() - base, "count": int(count),
+            "cells": n**3}
+
+
+def continuation(model, lo: float, size: float, depth: int, on: bool) -> dict:
+    from pipeline import components as cc
+
+    cc.detect(model, np.full(3, lo), size, 3, continuation=on)
+    t0 = time.perf_counter()
+    tree = cc.enumerate_cells(model, np.full(3, lo), size, depth, continuation=on)
+    t1 = time.perf_counter()
+    comp = cc.label_cells(tree)
+    return {"enumeration_s": t1 - t0, "detection_s": time.perf_counter() - t1, "count": comp.count,
+            "affine_tests": tree.stats["affine_tests"], "border": tree.stats["border_cells"]}
+
+
+def _child(kind: str, name: str, depth: int, flag: str = "") -> dict:
+    cmd = [sys.executable, __file__, "--one", kind, name, str(depth), flag]
+    out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=3600)
+    if out.returncode != 0:
+        return {"error": out.stderr.strip().splitlines()[-1] if out.stderr.strip() else "failed"}
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _one(kind: str, name: str, depth: int, flag: str) -> None:
+    raw, lo, size = MODELS[name]
+    model = _node(raw)
+    if kind == "sparse":
+        res = sparse(model, lo, size, depth)
+    elif kind == "dense":
+        res = dense(model, lo, size, depth)
+    else:
+        res = continuation(model, lo, size, depth, flag == "on")
+    print(json.dumps(res))
+
+
+def _dense_fits(depth: int) -> bool:
+    import psutil
+
+    need = (2**depth) ** 3 * 5  # bool mask + int32 labels
+    return need < 0.5 * psutil.virtual_memory().available
+
+
+def table_sparse_vs_dense(name: str = "two spheres") -> None:
+    print(f"\n### Sparse labelling vs dense scipy.ndimage.label - {name}\n")
+    print("| depth | cells (sparse) | sparse s | dense s | time ratio dense/sparse | sparse MB | dense MB "
+          "| memory ratio | counts |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for depth in (7, 8, 9, 10):
+        s = _child("sparse", name, depth)
+        d = _child("dense", name, depth) if _dense_fits(depth) else {"error": "skipped: memory"}
+        if "error" in s or "error" in d:
+            print(f"| {depth} | {s.get('cells', '-')} | {s.get('seconds', float('nan')):.2f} | {d.get('error', '')} "
+                  f"| - | {s.get('peak_mb', float('nan')):.0f} | - | - | {s.get('count', '-')} |")
+            continue
+        print(f"| {depth} | {s['cells']} | {s['seconds']:.2f} | {d['seconds']:.2f} | {d['seconds'] / s['seconds']:.1f} "
+              f"| {s['peak_mb']:.0f} | {d['peak_mb']:.0f} | {d['peak_mb'] / max(s['peak_mb'], 1):.1f} "
+              f"| {s['count']} / {d['count']} |")
+
+
+def table_continuation() -> None:
+    print("\n### Algorithm 1 (control range + continuation) vs plain affine subdivision [17]\n")
+    print("| model | depth | enumeration s (ours) | enumeration s ([17]) | detection s | affine tests ours / [17] "
+          "| border cells ours / [17] | count ours / [17] |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, depths in (("demo (Fig. 3)", (6, 7, 8)), ("solid noise (Fig. 4)", (6, 7, 8))):
+        for depth in depths:
+            on = _child("cont", name, depth, "on")
+            off = _child("cont", name, depth, "off")
+            print(f"| {name} | {depth} | {on['enumeration_s']:.2f} | {off['enumeration_s']:.2f} "
+                  f"| {on['detection_s']:.2f} | {on['affine_tests']} / {off['affine_tests']} "
+                  f"| {on['border']} / {off['border']} | {on['count']} / {off['count']} |")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "--one":
+        _one(sys.argv[2], sys.argv[3], int(sys.argv[4]), sys.argv[5] if len(sys.argv) > 5 else "")
+    else:
+        table_sparse_vs_dense()
+        table_continuation()

@@ -238,7 +238,8 @@ def merge_samples(parts: list[BlockSamples]) -> BlockSamples:
 def assemble(s: BlockSamples, imin: np.ndarray, imax: np.ndarray, h: float, band: float) -> Voxelised:
     """Leaves, inside boxes and statistics from the evaluated blocks."""
     block = s.values.shape[1] if len(s.values) else 4
-    bg = _background(s.values[s.active], band, h)
+    # from the float32 values the grid stores, so bricked (float32 transfer) and unsplit runs agree
+    bg = _background(s.values[s.active].astype(np.float32), band, h)
     grid = _assemble_leaves(s.blocks, block, s.values, s.active, s.valid, s.inside, h, bg)
     inside_boxes = _inside_boxes(s.inside, imin, imax)
     stats = dict(s.stats)

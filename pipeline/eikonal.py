@@ -515,11 +515,16 @@ def solve_distance(
     t2 = time.perf_counter()
 
     solved = np.isfinite(d)
-    bg = float(max_distance) if max_distance is not None else float(h * d[solved].max(initial=0.0))
-    values = np.where(solved, d * h, bg).astype(np.float32)
-    dist = BlockGrid(h, bg, grid.origins, values, solved)
+    origins = grid.origins
+    del grid, f, fact, sign  # free the working copies before the output is made
+    d *= h  # in place: at 1024^3 every full-size temporary costs gigabytes
+    bg = float(max_distance) if max_distance is not None else float(d[solved].max(initial=0.0))
+    d[~solved] = bg
+    values = d.astype(np.float32)
+    del d
+    dist = BlockGrid(h, bg, origins, values, solved)
     stats = {
-        "blocks": int(len(grid.origins)),
+        "blocks": int(len(origins)),
         "band_blocks": int(len(band.origins)),
         "solved_voxels": int(solved.sum()),
         "frozen_voxels": int(n_frozen),
@@ -555,7 +560,7 @@ def _lattice(origins: np.ndarray, lat_lo: np.ndarray, dims: np.ndarray) -> tuple
 def _assemble(band: BlockGrid, band_sign: np.ndarray, block_sign: np.ndarray, keep: np.ndarray, lat_lo):
     """Working arrays over band blocks plus the kept non-band blocks (sign filled per block).
 
-    Returns (grid whose values are the frep values as float64, sign int8, frep active).
+    Returns (grid whose values are the frep values, sign int8, frep active).
     """
     extra = np.argwhere(keep & (block_sign != 0))
     origins = np.concatenate([band.origins, (extra + lat_lo) << 3])
@@ -563,7 +568,7 @@ def _assemble(band: BlockGrid, band_sign: np.ndarray, block_sign: np.ndarray, ke
     extra_sign = np.broadcast_to(block_sign[tuple(extra.T)][:, None, None, None], shape)
     order = np.argsort(pack_keys(origins), kind="stable")
     sign = np.concatenate([band_sign, extra_sign])[order]
-    f = np.concatenate([band.values.astype(np.float64), np.zeros(shape)])[order]
+    f = np.concatenate([band.values, np.zeros(shape, dtype=band.values.dtype)])[order]  # frep is float32
     fact = np.concatenate([band.active, np.zeros(shape, dtype=bool)])[order]
     grid = BlockGrid(band.voxel_size, band.background, origins[order], f, fact)
     return grid, np.ascontiguousarray(sign), grid.values, grid.active

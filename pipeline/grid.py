@@ -46,11 +46,14 @@ class BlockGrid:
 
     def __post_init__(self) -> None:
         self.origins = np.asarray(self.origins, dtype=np.int64).reshape(-1, 3)
-        order = np.argsort(pack_keys(self.origins), kind="stable")
-        self.origins = self.origins[order]
-        self.values = np.ascontiguousarray(self.values[order])
-        self.active = np.ascontiguousarray(self.active[order])
-        self._keys = pack_keys(self.origins)
+        keys = pack_keys(self.origins)
+        if len(keys) > 1 and not np.all(keys[1:] > keys[:-1]):  # sort only when needed (no copies)
+            order = np.argsort(keys, kind="stable")
+            self.origins, keys = self.origins[order], keys[order]
+            self.values, self.active = self.values[order], self.active[order]
+        self.values = np.ascontiguousarray(self.values)
+        self.active = np.ascontiguousarray(self.active)
+        self._keys = keys
 
     # --- lookup ---------------------------------------------------------------------------
     def block_index(self, block_origins: np.ndarray) -> np.ndarray:

@@ -71,14 +71,15 @@ def hfrep_blocks(
     Unsolved voxels (outside, beyond max_distance) are inactive with value -background.
     """
     dist = result.distance
+    one = np.float32(1.0)
+    values = np.where(result.inside, one, -one)  # the step is +-1 away from the frep band
     rows = frep.block_index(dist.origins)
-    has = rows >= 0
-    fvals = np.zeros(dist.values.shape)
-    band_active = np.zeros(dist.values.shape, dtype=bool)
-    fvals[has] = frep.values[rows[has]]
-    band_active[has] = frep.active[rows[has]]
-    s = np.where(band_active, step_function(fvals, step, slope), np.where(result.inside, 1.0, -1.0))
-    values = np.where(dist.active, s * dist.values, -dist.background).astype(np.float32)
+    hb = np.flatnonzero(rows >= 0)
+    sub, fa = values[hb], frep.active[rows[hb]]
+    sub[fa] = step_function(frep.values[rows[hb]][fa], step, slope)
+    values[hb] = sub
+    values *= dist.values  # float32 throughout: this grid covers the whole interior
+    values[~dist.active] = -dist.background
     return BlockGrid(dist.voxel_size, -float(dist.background), dist.origins, values, dist.active.copy())
 
 

@@ -590,23 +590,27 @@ def signed_distance_blocks(result: EikonalResult) -> BlockGrid:
     return BlockGrid(dist.voxel_size, dist.background, dist.origins, values, dist.active)
 
 
-def surface_blocks(result: EikonalResult, band: float) -> BlockGrid:
+def surface_blocks(result: EikonalResult, band: float, full: bool = False) -> BlockGrid:
     """The ``surface`` level set (SPEC): negative inside, world units, background = band * h.
 
-    Solved voxels are active and carry the signed distance (the whole interior and the
-    outside up to ``max_distance``); unsolved voxels hold -background inside and
-    +background outside, as OpenVDB narrow-band level sets do.
+    By default a narrow band, as OpenVDB level sets are: voxels within ``band`` voxels of the
+    surface are active, the rest hold -background inside and +background outside. ``full``
+    keeps every solved voxel active (the whole interior and the outside up to max_distance).
     """
     sd = signed_distance_blocks(result)
     bg = float(band) * sd.voxel_size
-    clamp = np.where(result.inside, -bg, bg).astype(np.float32)
-    values = np.where(sd.active, sd.values, clamp)
-    return BlockGrid(sd.voxel_size, bg, sd.origins, values, sd.active)
+    active = sd.active if full else sd.active & (np.abs(sd.values) <= bg)
+    values = sd.values
+    values[~active] = np.where(result.inside[~active], -bg, bg)
+    keep = active.reshape(len(active), -1).any(axis=1) | full
+    if not full:  # a narrow band only needs the blocks it touches (signedFloodFill does the rest)
+        return BlockGrid(sd.voxel_size, bg, sd.origins[keep], values[keep], active[keep])
+    return BlockGrid(sd.voxel_size, bg, sd.origins, values, active)
 
 
-def surface_grid(result: EikonalResult, band: float, name: str = "surface"):
+def surface_grid(result: EikonalResult, band: float, name: str = "surface", full: bool = False):
     """pyopenvdb ``FloatGrid`` of :func:`surface_blocks`, class LEVEL_SET, sign flood-filled."""
-    blocks = surface_blocks(result, band)
+    blocks = surface_blocks(result, band, full)
     grid = vdb.FloatGrid(blocks.background)
     grid.name = name
     grid.transform = linear_transform(blocks.voxel_size)

@@ -47,6 +47,8 @@ class Params(StageParams):
     max_distance: float | Literal["domain"] | None = Field(
         default=None, description="how far outside to solve, world units; 'domain' = everywhere; default 10 voxels")
     density: bool = Field(default=True, description="also write a 'density' fog volume (0..1) for Blender")
+    surface: Literal["band", "full"] = Field(
+        default="band", description="'surface' level set: narrow band of the voxelise band, or every solved voxel")
     quality: bool = Field(default=True, description="field-quality report into the manifest")
     attributes: list[Attribute] = Field(default_factory=list, description="attribute grids of d, x, y, z, t")
 
@@ -77,22 +79,27 @@ def run(ctx, p: Params) -> dict:
     maxd = 10 * h if p.max_distance is None else p.max_distance
     res = solve_distance(frep, maxd, (dom.index_min, dom.index_max), ctx.data["inside_boxes"])
     meta = ctx.grid_metadata("hfrep", p)
-    surface = surface_grid(res, band)
-    surface.updateMetadata(meta)
     hf = hfrep_blocks(frep, res, p.step, p.slope)
-    hgrid = frep_to_vdb(hf, np.zeros((0, 2, 3), np.int64), "hfrep")
-    hgrid.updateMetadata({**meta, "step": p.step, "slope": p.slope})
-    ctx.grids["surface"], ctx.grids["hfrep"] = surface, hgrid
-    ctx.blocks["hfrep"] = hf
-    ctx.data["eikonal"] = res
-    if p.density:
-        ctx.grids["density"] = density_grid(res, band * h)
-        ctx.grids["density"].updateMetadata(meta)
+    for name in ("surface", "hfrep", "density"):  # keep these first in the file, attributes after
+        ctx.grids[name] = None
     if p.quality:
         ctx.manifest.setdefault("quality", {}).update(field_report(frep, res, hf))
     stats = dict(res.stats)
     if p.attributes:
         stats["attributes"] = _attributes(ctx, p, res, hf, band, meta)
+    # build the grids one at a time and drop each working copy: at 1024^3 the interior
+    # distance is hundreds of millions of voxels
+    hgrid = frep_to_vdb(hf, np.zeros((0, 2, 3), np.int64), "hfrep")
+    hgrid.updateMetadata({**meta, "step": p.step, "slope": p.slope})
+    del hf
+    if p.density:
+        ctx.grids["density"] = density_grid(res, band * h)
+        ctx.grids["density"].updateMetadata(meta)
+    else:
+        del ctx.grids["density"]
+    surface = surface_grid(res, band, full=p.surface == "full")
+    surface.updateMetadata(meta)
+    ctx.grids["surface"], ctx.grids["hfrep"] = surface, hgrid
     return stats
 
 

@@ -228,10 +228,10 @@ def test_surface_level_set_grid() -> None:
     fn = lambda p: 0.6 - np.linalg.norm(p, axis=-1)  # noqa: E731  (the contract check's sphere)
     frep, dom = band_grid(fn, n)
     res = solve_distance(frep, band * h, dom)
-    blocks = surface_blocks(res, band)
+    blocks = surface_blocks(res, band, full=True)
     assert blocks.background == pytest.approx(band * h)
     assert np.all(np.abs(blocks.values[~blocks.active]) == pytest.approx(band * h))
-    grid = surface_grid(res, band)
+    grid = surface_grid(res, band, full=True)  # the whole solved region; the default is a narrow band
     assert grid.gridClass == vdb.GridClass.LEVEL_SET
     assert grid.name == "surface"
     acc = grid.getConstAccessor()

@@ -29,6 +29,7 @@ stages:
   - voxelise: {{band: 3}}
   - hfrep:
       slope: 0.01
+      surface: full
       attributes:
         - name: color
           rgb: ["d", "x + 2*d", "0.5 + 0.5*cos(2*pi*d/0.2)"]
@@ -84,6 +85,19 @@ def test_surface_is_a_level_set_close_to_the_distance(run) -> None:
     centre = tuple(int(c) for c in np.rint(C / H))
     assert s.getConstAccessor().getValue(centre) < -0.5
     assert s.getConstAccessor().getValue((N // 2, N // 2, N // 2)) > 0
+
+
+def test_default_surface_is_a_narrow_band(tmp_path) -> None:
+    """By default ``surface`` is a narrow-band level set: |active| <= band * h, -bg inside."""
+    cfg = tmp_path / "nb.yaml"
+    cfg.write_text(CONFIG.replace("      surface: full\n", "").replace("name: ball", "name: nb"))
+    assert main(["run", str(cfg), "--out", str(tmp_path / "o")]) == 0
+    s = vdb.read(str(tmp_path / "o" / "nb" / "nb.vdb"), "surface")
+    assert s.gridClass == vdb.GridClass.LEVEL_SET and s.background == pytest.approx(3 * H)
+    ijk, v = active(s)
+    assert np.abs(v).max() <= 3 * H + 1e-6 and np.abs(-v - exact(ijk * H)).max() < 1.5 * H
+    centre = tuple(int(c) for c in np.rint(C / H))
+    assert s.getConstAccessor().getValue(centre) == pytest.approx(-3 * H)  # inside: -background
 
 
 def test_hfrep_has_the_sign_of_frep_everywhere(run) -> None:

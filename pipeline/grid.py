@@ -101,21 +101,23 @@ def linear_transform(voxel_size: float):
     return vdb.createLinearTransform(voxelSize=float(voxel_size))
 
 
-def write_blocks(grid, blocks: BlockGrid) -> None:
-    """Copy every block into ``grid``; inactive voxels are written as the grid's background,
-    so ``copyFromArray`` (which activates every value that differs from the background) leaves
-    them inactive. Leaves that follow each other along z go in one call (a call costs ~20 us)."""
+def write_blocks(grid, blocks: BlockGrid, scale: float = 1.0) -> None:
+    """Copy every block (values times ``scale``) into ``grid``; inactive voxels are written as
+    the grid's background, so ``copyFromArray`` (which activates every value that differs from
+    the background) leaves them inactive. Leaves that follow each other along z go in one call
+    (a call costs ~20 us); arrays are made per run, never for the whole grid at once."""
     if len(blocks.origins) == 0:
         return
     bg = np.float32(grid.background)
-    dense = np.where(blocks.active, blocks.values, bg).astype(np.float32)
     o = blocks.origins
     brk = np.ones(len(o), bool)  # a run starts where x, y change or z is not the next leaf
     brk[1:] = (o[1:, 0] != o[:-1, 0]) | (o[1:, 1] != o[:-1, 1]) | (o[1:, 2] != o[:-1, 2] + LEAF)
     starts = np.flatnonzero(brk)
     ends = np.append(starts[1:], len(o))
+    k = np.float32(scale)
     for s, e in zip(starts, ends, strict=True):
-        arr = dense[s] if e - s == 1 else np.concatenate(dense[s:e], axis=2)
+        run = np.where(blocks.active[s:e], blocks.values[s:e] * k, bg).astype(np.float32)
+        arr = run[0] if e - s == 1 else np.concatenate(run, axis=2)
         grid.copyFromArray(np.ascontiguousarray(arr), (int(o[s, 0]), int(o[s, 1]), int(o[s, 2])))
 
 
@@ -134,8 +136,7 @@ def frep_to_vdb(blocks: BlockGrid, inside_boxes: np.ndarray, name: str = "frep")
     grid = vdb.FloatGrid(bg)
     grid.name = name
     grid.transform = linear_transform(blocks.voxel_size)
-    neg = BlockGrid(blocks.voxel_size, bg, blocks.origins, -blocks.values, blocks.active)
-    write_blocks(grid, neg)
+    write_blocks(grid, blocks, scale=-1.0)
     grid.signedFloodFill()
     negate_active(grid)
     grid.background = -bg  # swaps +bg <-> -bg on inactive values and tiles

@@ -67,21 +67,29 @@ def _central_gradient(vals, act, nbr, h, grad, ok):
                     ok[b, i, j, k] = good
 
 
+HIST_MAX, HIST_BINS = 4.0, 40_000  # |grad| histogram: 1e-4 resolution for the percentiles
+
+
 @njit(cache=True)
-def _gradient_norm(vals, act, nbr, h, out):
-    """|central-difference gradient| where the voxel and its 6 face neighbours are active
-    (NaN elsewhere). Interior voxels of a block skip the neighbour-block lookup."""
+def _gradient_hist(vals, act, nbr, h, hist):
+    """Histogram of |central-difference gradient| over voxels whose 6 face neighbours are
+    active (no per-voxel output: constant memory however large the grid). Returns (n, sum);
+    values beyond HIST_MAX land in the last bin. Interior voxels skip the neighbour lookup."""
+    n = 0
+    total = 0.0
+    nb = hist.shape[0]
+    scale = nb / HIST_MAX
     for b in range(vals.shape[0]):
         for i in range(8):
             for j in range(8):
                 for k in range(8):
-                    out[b, i, j, k] = np.nan
                     if not act[b, i, j, k]:
                         continue
                     g2 = 0.0
                     good = True
                     for axis in range(3):
-                        if 0 < (i, j, k)[axis] < 7:
+                        c = i if axis == 0 else (j if axis == 1 else k)
+                        if 0 < c < 7:
                             di, dj, dk = (1, 0, 0) if axis == 0 else ((0, 1, 0) if axis == 1 else (0, 0, 1))
                             if not (act[b, i - di, j - dj, k - dk] and act[b, i + di, j + dj, k + dk]):
                                 good = False
@@ -96,7 +104,11 @@ def _gradient_norm(vals, act, nbr, h, out):
                             d = hi - lo
                         g2 += d * d
                     if good:
-                        out[b, i, j, k] = np.sqrt(g2) / (2.0 * h)
+                        g = np.sqrt(g2) / (2.0 * h)
+                        hist[min(int(g * scale), nb - 1)] += 1
+                        n += 1
+                        total += g
+    return n, total
 
 
 @njit(cache=True)
@@ -137,18 +149,38 @@ def gradient_stats(grid: BlockGrid, mask: Callable[[np.ndarray], np.ndarray] | N
     """|grad f| statistics (approximate-distance-fields 1.2: normalisation, |grad| = 1).
 
     ``mask``: optional predicate on world points (N,3) -> bool selecting the voxels to use
-    (e.g. away from the medial axis).
+    (e.g. away from the medial axis). Without a mask the statistics come from a histogram
+    (percentiles to 1e-4), so any grid size costs constant memory.
     """
     if mask is None:
-        out = np.empty(grid.values.shape, np.float32)
-        _gradient_norm(grid.values, grid.active, block_neighbours(grid), float(grid.voxel_size), out)
-        mag = out[np.isfinite(out)].astype(np.float64)
-    else:
-        ijk, g = central_gradient(grid)
-        if len(ijk):
-            g = g[np.asarray(mask(ijk * grid.voxel_size), dtype=bool)]
-        mag = np.linalg.norm(g, axis=1)
-    return _norm_stats(mag)
+        hist = np.zeros(HIST_BINS, np.int64)
+        n, total = _gradient_hist(grid.values, grid.active, block_neighbours(grid), float(grid.voxel_size), hist)
+        return _hist_stats(hist, n, total)
+    ijk, g = central_gradient(grid)
+    if len(ijk):
+        g = g[np.asarray(mask(ijk * grid.voxel_size), dtype=bool)]
+    return _norm_stats(np.linalg.norm(g, axis=1))
+
+
+def _hist_stats(hist: np.ndarray, n: int, total: float) -> dict:
+    if n == 0:
+        return {"voxels": 0}
+    width = HIST_MAX / len(hist)
+    cum = np.cumsum(hist)
+    centre = (np.arange(len(hist)) + 0.5) * width
+
+    def pct(q: float) -> float:
+        return float(centre[np.searchsorted(cum, q / 100.0 * n)])
+
+    lo1, hi1 = int(np.floor(0.99 / width)), int(np.ceil(1.01 / width))
+    return {
+        "voxels": int(n),
+        "mean": float(total / n),
+        "p01": pct(1),
+        "p99": pct(99),
+        "share_below_0_5": float(cum[int(0.5 / width) - 1] / n),
+        "share_within_1pct": float(hist[lo1:hi1].sum() / n),
+    }
 
 
 def _norm_stats(mag: np.ndarray) -> dict:
@@ -191,14 +223,20 @@ def distance_deviation(
     }
 
 
-def deviation_on_blocks(grid: BlockGrid, reference: BlockGrid, band: float, sign: float = 1.0) -> dict:
+def deviation_on_blocks(grid: BlockGrid, reference: BlockGrid, band: float, sign: float = 1.0,
+                        near: np.ndarray | None = None) -> dict:
     """Like :func:`distance_deviation`, with the reference given as blocks (``sign`` * its
-    values is the distance in ``grid``'s convention); block-aligned, no per-voxel lookup."""
-    rows = reference.block_index(grid.origins)
-    has = rows >= 0
-    v = grid.values[has]
-    ref = sign * reference.values[rows[has]].astype(np.float64)
-    use = grid.active[has] & reference.active[rows[has]] & (np.abs(ref) < band)
+    values is the distance in ``grid``'s convention); block-aligned, no per-voxel lookup.
+    ``near``: origins of the blocks that can hold voxels within ``band`` of the surface (the
+    voxelise band): only those are compared, so the cost follows the surface, not the volume."""
+    g_rows = np.arange(len(grid.origins)) if near is None else grid.block_index(near)
+    g_rows = g_rows[g_rows >= 0]
+    rows = reference.block_index(grid.origins[g_rows])
+    ok = rows >= 0
+    g_rows, rows = g_rows[ok], rows[ok]
+    v = grid.values[g_rows]
+    ref = sign * reference.values[rows].astype(np.float64)
+    use = grid.active[g_rows] & reference.active[rows] & (np.abs(ref) < band)
     if not use.any():
         return {"voxels": 0}
     err = np.abs(v[use].astype(np.float64) - ref[use])
@@ -219,13 +257,11 @@ def extra_zero_crossings(field: BlockGrid, reference: BlockGrid) -> dict:
     """
     rows = reference.block_index(field.origins)
     has = rows >= 0
-    ref = np.zeros(field.values.shape, dtype=np.float64)
+    ref = np.zeros(field.values.shape, dtype=reference.values.dtype)
     ref_act = np.zeros(field.values.shape, dtype=bool)
     ref[has] = reference.values[rows[has]]
     ref_act[has] = reference.active[rows[has]]
-    extra, edges = _sign_flips(
-        field.values.astype(np.float64), field.active, ref, ref_act, block_neighbours(field)
-    )
+    extra, edges = _sign_flips(field.values, field.active, ref, ref_act, block_neighbours(field))
     return {"extra_zero_crossings": int(extra), "edges_compared": int(edges)}
 
 
@@ -239,6 +275,7 @@ def field_report(frep: BlockGrid, res, hf: BlockGrid) -> dict:
     return {
         "frep": {"gradient": gradient_stats(frep), "deviation": deviation_on_blocks(frep, sd, band, -1.0)},
         "surface": {"gradient": gradient_stats(sd)},
-        "hfrep": {"gradient": gradient_stats(hf), "deviation": deviation_on_blocks(hf, sd, band, -1.0),
+        "hfrep": {"gradient": gradient_stats(hf),
+                  "deviation": deviation_on_blocks(hf, sd, band, -1.0, near=frep.origins),
                   **extra_zero_crossings(hf, frep)},
     }

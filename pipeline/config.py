@@ -529,21 +529,29 @@ def _parse_path(s: str) -> list:
     return out
 
 
+HFREP_BYTES_PER_VOXEL = 30  # measured peak of the hfrep stage per interior voxel (docs/performance.md)
+
+
 def _check_memory(job: Job, ctx: _Ctx, base: tuple = ()) -> None:
-    """Refuse a domain whose narrow band would not fit in this machine's memory (estimate)."""
-    from pipeline.voxelise import estimate_band_bytes
+    """Refuse a domain whose grids would not fit in this machine's memory (estimates): the
+    narrow band of voxelise, and the interior that the hfrep stage solves completely."""
+    from pipeline.voxelise import estimate_band_bytes, estimate_interior_voxels
 
     voxelise = next((p for n, p in job.stages if n == "voxelise"), None)
     if voxelise is None or job.domain.dims.max() < 1024:
         return  # small domains always fit
     need = estimate_band_bytes(job.model, job.domain, voxelise.band, job.t)
+    what = "its narrow band"
+    if any(n == "hfrep" for n, _ in job.stages):
+        need += HFREP_BYTES_PER_VOXEL * estimate_interior_voxels(job.model, job.domain, voxelise.band, job.t)
+        what = "its narrow band and the interior distance of the hfrep stage"
     avail = _available_memory()
     if need > avail:
         local = _at(job.raw, base + ("domain",))
         raw_dom = local or job.raw.get("domain", {})
         key = "voxel_size" if "voxel_size" in raw_dom else "resolution"
         where = (base if local else ()) + ("domain", key)
-        raise ctx.fail(where, f"this domain needs an estimated {need / 2**30:.1f} GiB for its narrow band; "
+        raise ctx.fail(where, f"this domain needs an estimated {need / 2**30:.1f} GiB for {what}; "
                               f"this machine has {avail / 2**30:.1f} GiB available")
 
 

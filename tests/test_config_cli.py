@@ -114,3 +114,20 @@ def test_console_script_and_exit_codes(tmp_path):
     assert r.returncode == 2 and "c.yaml:7 model.union[0].sphere.radius: must be > 0" in r.stderr
     r = subprocess.run([str(exe), "info", str(tmp_path / "missing.vdb")], capture_output=True, text=True)
     assert r.returncode == 2 and "Traceback" not in r.stderr
+
+
+def test_memory_check_counts_the_hfrep_interior(tmp_path, capsys, monkeypatch):
+    """The narrow band of a sphere at 2000^3 fits in 16 GiB, its interior distance does not."""
+    import pipeline.config as config
+
+    monkeypatch.setattr(config, "_available_memory", lambda: 16 * 2**30)  # a fixed machine size
+    text = ("name: big\ndomain: {bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 2000}\n"
+            "model: {sphere: {radius: 0.8}}\nstages:\n  - voxelise: {band: 3}\n")
+    cfg = tmp_path / "big.yaml"
+    cfg.write_text(text)
+    assert main(["validate", str(cfg)]) == 0
+    cfg.write_text(text + "  - hfrep: {}\n")
+    assert main(["validate", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert "big.yaml:2 domain.resolution: this domain needs an estimated" in err
+    assert "interior distance of the hfrep stage" in err

@@ -11,6 +11,7 @@ unless ``force``.
 
 from __future__ import annotations
 
+import functools
 import json
 import multiprocessing
 import os
@@ -41,9 +42,16 @@ def ref_of(job: Job) -> JobRef:
 
 
 def load_ref(ref: JobRef) -> Job:
-    jobs = load_jobs(ref.config, select=ref.name)
+    """The job a reference names, loaded once per process and config version (bricks of one
+    job reuse it instead of re-validating the config for every brick)."""
+    return _load_ref(ref.config, ref.name, Path(ref.config).stat().st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=8)
+def _load_ref(config: str, name: str, mtime_ns: int) -> Job:
+    jobs = load_jobs(config, select=name)
     if not jobs:
-        raise ConfigError.one(ref.config, None, (), f"no job named {ref.name!r} in this config")
+        raise ConfigError.one(config, None, (), f"no job named {name!r} in this config")
     return jobs[0]
 
 

@@ -4,7 +4,6 @@ collision (section 5), the components stage and the collide command."""
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,6 @@ from pipeline import rfunctions as rf
 from pipeline.cli import main
 from pipeline.config import _Ctx, build_node
 from pipeline.grid import vdb
-from pipeline.nodes import REGISTRY
 
 FAST = settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 DEMO = {"difference": [{"superellipsoid": {"radii": [1, 1, 1], "exponents": [0.3, 0.3]}},
@@ -443,12 +441,11 @@ def test_keep_min_volume_and_bad_params(tmp_path, capsys):
 # --- meshes (BSP-field node) ----------------------------------------------------------------------
 
 
-KNOT = Path("/work/shared/meshes/knot2.off")
-SLOW = os.environ.get("FREPVDB_SLOW_TESTS") == "1"
+KNOT = Path(__file__).resolve().parents[2] / "shared" / "meshes" / "knot2.off"
 
 
-@pytest.mark.skipif(not KNOT.exists() or "mesh" not in REGISTRY, reason="needs /work/shared/meshes and the mesh node")
-@pytest.mark.skipif(not SLOW, reason="~100 s (BSP-field build and evaluation); set FREPVDB_SLOW_TESTS=1")
+@pytest.mark.realdata
+@pytest.mark.skipif(not KNOT.exists(), reason="../shared/meshes is absent")
 def test_two_component_knot_mesh():
     model = node({"mesh": {"path": str(KNOT)}})
     v = np.loadtxt(KNOT, skiprows=2, max_rows=5760)

@@ -213,14 +213,7 @@ def distance_deviation(
     near = np.abs(ref) < band
     if not near.any():
         return {"voxels": 0}
-    err = np.abs(v[near].astype(np.float64) - ref[near])
-    return {
-        "voxels": int(near.sum()),
-        "max": float(err.max()),
-        "mean": float(err.mean()),
-        "rms": float(np.sqrt((err**2).mean())),
-        "max_over_voxel": float(err.max() / grid.voxel_size),
-    }
+    return _error_stats(np.abs(v[near].astype(np.float64) - ref[near]), grid.voxel_size)
 
 
 def deviation_on_blocks(grid: BlockGrid, reference: BlockGrid, band: float, sign: float = 1.0,
@@ -239,13 +232,16 @@ def deviation_on_blocks(grid: BlockGrid, reference: BlockGrid, band: float, sign
     use = grid.active[g_rows] & reference.active[rows] & (np.abs(ref) < band)
     if not use.any():
         return {"voxels": 0}
-    err = np.abs(v[use].astype(np.float64) - ref[use])
+    return _error_stats(np.abs(v[use].astype(np.float64) - ref[use]), grid.voxel_size)
+
+
+def _error_stats(err: np.ndarray, h: float) -> dict:
     return {
-        "voxels": int(use.sum()),
+        "voxels": int(len(err)),
         "max": float(err.max()),
         "mean": float(err.mean()),
         "rms": float(np.sqrt((err**2).mean())),
-        "max_over_voxel": float(err.max() / grid.voxel_size),
+        "max_over_voxel": float(err.max() / h),
     }
 
 

@@ -534,7 +534,7 @@ def point_labels(comp: Components, points: np.ndarray) -> np.ndarray:
 # --- section 4.3: separation fields ------------------------------------------------------------------
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _box_query(qlo, qhi, blo, bhi, bkeys, border, binsize, reach, mode, init):
     """For query boxes (points when qlo == qhi): mode 0 -> min Euclidean distance from the query
     point to the boxes; mode 1 -> interval (lo, hi) of max_i min_axis g_i over the query box, with
@@ -543,12 +543,16 @@ def _box_query(qlo, qhi, blo, bhi, bkeys, border, binsize, reach, mode, init):
     nq = qlo.shape[0]
     out_lo = np.full(nq, init)
     out_hi = np.full(nq, init)
-    for q in range(nq):
-        b0 = np.floor((qlo[q] - reach) / binsize).astype(np.int64)
-        b1 = np.floor((qhi[q] + reach) / binsize).astype(np.int64)
-        for bx in range(b0[0], b1[0] + 1):
-            for by in range(b0[1], b1[1] + 1):
-                for bz in range(b0[2], b1[2] + 1):
+    for q in numba.prange(nq):  # queries are independent: both cores
+        x0 = int(np.floor((qlo[q, 0] - reach) / binsize))
+        x1 = int(np.floor((qhi[q, 0] + reach) / binsize))
+        y0 = int(np.floor((qlo[q, 1] - reach) / binsize))
+        y1 = int(np.floor((qhi[q, 1] + reach) / binsize))
+        z0 = int(np.floor((qlo[q, 2] - reach) / binsize))
+        z1 = int(np.floor((qhi[q, 2] + reach) / binsize))
+        for bx in range(x0, x1 + 1):
+            for by in range(y0, y1 + 1):
+                for bz in range(z0, z1 + 1):
                     key = ((bx + border) << 42) | ((by + border) << 21) | (bz + border)
                     s = np.searchsorted(bkeys, key)
                     while s < bkeys.shape[0] and bkeys[s] == key:

@@ -108,3 +108,23 @@ def test_bad_mesh_is_exit_2_with_line(tmp_path, capsys, content, message):
     err = capsys.readouterr().err
     assert "c.yaml:4 model.mesh:" in err and "m.off" in err and message in err
     assert "Traceback" not in err and not (tmp_path / "o" / "c").exists()
+
+
+def test_open_mesh_is_exit_2_unless_allowed(tmp_path, capsys):
+    """SPEC: a mesh that is not closed is bad input; allow_open converts it with a warning."""
+    m = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    m.update_faces(np.arange(len(m.faces)) != 0)  # drop one triangle: a hole
+    m.export(tmp_path / "open.off")
+    text = ("name: o\ndomain: {bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 24}\nmodel:\n"
+            "  mesh: {path: open.off%s}\nstages:\n  - voxelise: {}\n")
+    cfg = tmp_path / "o.yaml"
+    cfg.write_text(text % "")
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "o.yaml:4 model.mesh:" in err and "open.off: mesh is not closed" in err and "allow_open" in err
+    cfg.write_text(text % ", allow_open: true")
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+    import json
+
+    man = json.loads((tmp_path / "out" / "o" / "manifest.json").read_text())
+    assert any("not closed" in w for w in man["warnings"]) and man["meshes"][0]["watertight"] is False

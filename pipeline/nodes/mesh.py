@@ -32,6 +32,7 @@ class Mesh(Node):
         seed: int = 0
         join: Literal["requiv", "rconj"] = "requiv"
         p: float = Field(default=2.0, ge=1)
+        allow_open: bool = Field(default=False, description="convert a mesh that is not closed (with a warning)")
 
     def __init__(self, params, where=""):
         super().__init__(params, where)
@@ -39,6 +40,11 @@ class Mesh(Node):
             mesh, self.report = load_mesh(params.path)
         except MeshError as e:
             raise InputError(str(e)) from None
+        if not self.report.watertight and not params.allow_open:
+            # SPEC: a mesh that is not closed is bad input; bsp-fields section 4.2 shows what its
+            # field looks like, so users can still ask for it explicitly
+            raise InputError(f"{params.path}: mesh is not closed (not watertight), so its field has no "
+                             "inside; set allow_open: true to convert it anyway (the field is then not exact)")
         self.warnings = list(self.report.warnings)
         if params.method == "bsp":
             from pipeline.bsp import BSPField

@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from pipeline.errors import ConfigError, InputError
+from pipeline.errors import ConfigError, InputError, format_path
 from pipeline.nodes import REGISTRY, Node
 from pipeline.nodes.base import Vec3
 from pipeline.nodes.expr import FormulaError
@@ -201,7 +201,7 @@ def build_node(raw: Any, path: tuple, ctx: _Ctx) -> Node:
         raise ConfigError(validation_problems(e, ctx.file, ctx.root, here, cls.Params, strip)) from None
     job_args = {"domain": ctx.domain, "t": ctx.t} if getattr(cls, "uses_domain", False) else {}
     try:
-        return cls(params, where=_fmt(here), **job_args)
+        return cls(params, where=format_path(here), **job_args)
     except FormulaError as e:
         raise ctx.fail(here + (() if strip else ("formula",)), f"bad formula: {e}") from None
     except InputError as e:
@@ -230,12 +230,6 @@ def _build_children(value: Any, path: tuple, ctx: _Ctx):
     if isinstance(value, list):
         return [build_node(item, path + (i,), ctx) for i, item in enumerate(value)]
     return build_node(value, path, ctx)
-
-
-def _fmt(path: tuple) -> str:
-    from pipeline.errors import format_path
-
-    return format_path(path)
 
 
 # --- top level ---------------------------------------------------------------------------------

@@ -284,10 +284,7 @@ def test_2d_tree_counts_and_bound() -> None:
     rng = np.random.default_rng(8)
     lo = rng.uniform(-1, 5, (300, 2))
     hi = lo + rng.uniform(0, 1.5, (300, 2))
-    flo, fhi = hole.bound(lo, hi)
-    for i in range(300):
-        v = hole.evaluate(lo[i] + rng.random((60, 2)) * (hi[i] - lo[i]))
-        assert flo[i] <= v.min() and v.max() <= fhi[i]
+    assert_bound_encloses(hole, lo, hi, rng, 60)
 
 
 # --------------------------------------------------------------------------- C1 continuity
@@ -336,10 +333,7 @@ def test_adf_sign_zero_and_bounds(join: str) -> None:
     rng = np.random.default_rng(11)
     lo = rng.uniform(-0.5, 3.0, (80, 3))
     hi = lo + rng.uniform(0, 1.0, (80, 3))
-    flo, fhi = field.bound(lo, hi)
-    for i in range(80):
-        w = field.evaluate(lo[i] + rng.random((40, 3)) * (hi[i] - lo[i]))
-        assert flo[i] <= w.min() and w.max() <= fhi[i]
+    assert_bound_encloses(field, lo, hi, rng, 40)
 
 
 def test_adf_requiv_is_normalised_near_a_face() -> None:
@@ -360,3 +354,11 @@ def test_adf_rejects_bad_parameters() -> None:
         ADFField.from_mesh(mesh, join="union")
     with pytest.raises(ValueError, match="p must"):
         ADFField.from_mesh(mesh, p=0.5)
+
+
+def assert_bound_encloses(field, lo, hi, rng, samples: int) -> None:
+    """Values at random points of every box lie inside the field's bound of that box."""
+    flo, fhi = field.bound(lo, hi)
+    for i in range(len(lo)):
+        v = field.evaluate(lo[i] + rng.random((samples, lo.shape[1])) * (hi[i] - lo[i]))
+        assert flo[i] <= v.min() and v.max() <= fhi[i]

@@ -265,6 +265,20 @@ def enumerate_cells(model: Node, origin, size: float, depth: int, t: float = 0.0
     affine test and the finest ambiguous cells are kept as border. ``region`` (world lo, hi)
     clips the cells (the job's domain box).
     """
+    return enumerate_in_brick(model, origin, size, depth, t, region, continuation)[0]
+
+
+def enumerate_in_brick(model: Node, origin, size: float, depth: int, t: float = 0.0,
+                       region: tuple[np.ndarray, np.ndarray] | None = None, continuation: bool = True,
+                       brick: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[Octree, np.ndarray]:
+    """Algorithm 1 restricted to a brick: ``brick`` = (lo, hi), a half-open box of finest-level
+    cell indices. Only the cells that meet the brick are visited, so a coarse kept cell that
+    reaches into the brick from outside is returned too (exactly as the whole-domain pass keeps
+    it: a cell's fate depends on itself and its ancestors only). The continuation stays inside
+    the brick; the finest cells it would enter outside are returned as ``escaped`` (unique
+    coordinates) for the caller to finish (pipeline.component_bricks). Without ``brick``: the
+    whole domain, nothing escapes.
+    """
     t0 = time.perf_counter()
     origin = np.asarray(origin, float)
     rlo, rhi = (np.full(3, -np.inf), np.full(3, np.inf)) if region is None else map(np.asarray, region)
@@ -273,15 +287,19 @@ def enumerate_cells(model: Node, origin, size: float, depth: int, t: float = 0.0
     kept_l, kept_c, kept_k, kept_p = [], [], [], []
     cells = np.zeros((1, 3), np.int64)
     vals = _corner_values(cache, cells, 1 << depth) if continuation else None
+    escaped = np.zeros((0, 3), np.int64)
     for lv in range(depth + 1):
         ok = _in_region(cells, lv, origin, size, rlo, rhi)
+        if brick is not None:
+            ok &= _meets(cells, lv, depth, brick)
         cells = cells[ok]
         vals = vals[ok] if continuation else None
         if len(cells) == 0:
             break
         st["cells_visited"] += len(cells)
         if lv == depth:
-            lev = _finest(model, cells, vals, origin, size, depth, t, cache, st, continuation, (rlo, rhi))
+            lev, escaped = _finest(model, cells, vals, origin, size, depth, t, cache, st, continuation,
+                                   (rlo, rhi), brick)
             for kind, (c, frac) in lev.items():
                 kept_l.append(np.full(len(c), lv)), kept_c.append(c)
                 kept_k.append(np.full(len(c), kind, np.int8)), kept_p.append(frac)
@@ -301,7 +319,13 @@ def enumerate_cells(model: Node, origin, size: float, depth: int, t: float = 0.0
                   _cat(kept_k, (0,), np.int8), _cat(kept_p, (0,), np.float64), st)
     st["inside_cells"] = int((tree.kind == INSIDE).sum())
     st["border_cells"] = int((tree.kind == BORDER).sum())
-    return tree
+    return tree, escaped
+
+
+def _meets(coords: np.ndarray, level: int, depth: int, brick) -> np.ndarray:
+    """Cells of ``level`` whose finest-index span meets the half-open brick (lo, hi)."""
+    lo = coords << (depth - level)
+    return np.all((lo < brick[1]) & (lo + (1 << (depth - level)) > brick[0]), axis=1)
 
 
 def _cat(parts: list, shape: tuple, dtype) -> np.ndarray:
@@ -329,8 +353,10 @@ def _classify(model, cells, vals, lv, origin, size, t, st) -> tuple[np.ndarray, 
     return inside, split
 
 
-def _finest(model, cells, vals, origin, size, depth, t, cache, st, continuation, region) -> dict:
-    """Finest level: control range only (continuation) or affine only ([17])."""
+def _finest(model, cells, vals, origin, size, depth, t, cache, st, continuation, region,
+            brick=None) -> tuple[dict, np.ndarray]:
+    """Finest level: control range only (continuation) or affine only ([17]); also the
+    continuation's cells outside ``brick`` (see enumerate_in_brick)."""
     if not continuation:
         c = size / 2**depth
         lo = origin + cells * c
@@ -339,8 +365,13 @@ def _finest(model, cells, vals, origin, size, depth, t, cache, st, continuation,
         inside = flo > 0
         border = ~inside & ~(fhi < 0)
         return {INSIDE: (cells[inside], np.ones(int(inside.sum()))),
-                BORDER: (cells[border], np.full(int(border.sum()), 0.5))}
-    cells, vals = _continuation(cells, vals, cache, depth, origin, size, region, st)
+                BORDER: (cells[border], np.full(int(border.sum()), 0.5))}, np.zeros((0, 3), np.int64)
+    cells, vals, escaped = _continuation(cells, vals, cache, depth, origin, size, region, st, brick)
+    return _finest_kinds(cells, vals), escaped
+
+
+def _finest_kinds(cells: np.ndarray, vals: np.ndarray) -> dict:
+    """Finest cells by the control range (eq. 3): all corners positive -> inside, mixed -> border."""
     npos = (vals > 0).sum(axis=1)
     inside = npos == 8
     border = (npos > 0) & (npos < 8)
@@ -348,15 +379,21 @@ def _finest(model, cells, vals, origin, size, depth, t, cache, st, continuation,
             BORDER: (cells[border], npos[border] / 8.0)}
 
 
-def _continuation(cells, vals, cache, depth, origin, size, region, st):
+def _continuation(cells, vals, cache, depth, origin, size, region, st, brick=None, have=None):
     """Algorithm 1: from every cell with a sign-changing edge, enumerate the not yet enumerated
-    cells that share the edge, until no new cell appears (they hold a zero of f on that edge)."""
-    have = np.sort(pack(cells))
+    cells that share the edge, until no new cell appears (they hold a zero of f on that edge).
+    ``have``: sorted packed keys already enumerated (default: ``cells``). With ``brick`` the
+    walk stays inside it and the cells it would enter outside are returned as escaped."""
+    have = np.sort(pack(cells)) if have is None else have
     frontier_c, frontier_v = cells, vals
-    added_c, added_v = [cells], [vals]
+    added_c, added_v, escaped = [cells], [vals], [np.zeros((0, 3), np.int64)]
     while len(frontier_c):
         nb = _unique_rows(_missing_edge_neighbours(frontier_c, frontier_v, have, 1 << depth))
         new = nb[_in_region(nb, depth, origin, size, *region)]
+        if brick is not None:
+            inner = _meets(new, depth, depth, brick)
+            escaped.append(new[~inner])
+            new = new[inner]
         if len(new) == 0:
             break
         nv = _corner_values(cache, new, 1)
@@ -365,7 +402,7 @@ def _continuation(cells, vals, cache, depth, origin, size, region, st):
         added_c.append(new)
         added_v.append(nv)
         frontier_c, frontier_v = new, nv
-    return np.concatenate(added_c), np.concatenate(added_v)
+    return np.concatenate(added_c), np.concatenate(added_v), _unique_rows(np.concatenate(escaped))
 
 
 # --- section 4.2: marking with propagation ---------------------------------------------------------
@@ -447,7 +484,11 @@ def label_cells(tree: Octree) -> Components:
     a, b = adjacency(tree)
     indptr, indices = _csr(n, a, b)
     raw, count = _mark(n, indptr, indices) if n else (np.zeros(0, np.int32), 0)
-    labels = _scan_order(tree, raw.astype(np.int64), count)
+    return summarise(tree, _scan_order(tree, raw.astype(np.int64), count), int(count), t0)
+
+
+def summarise(tree: Octree, labels: np.ndarray, count: int, t0: float) -> Components:
+    """Components from scan-ordered labels: volume estimate and bounds per cluster (section 4.2)."""
     vols = tree.volumes()
     est = np.bincount(labels, vols * tree.pos_frac, minlength=count + 1)[1:]
     lo = np.bincount(labels, vols * (tree.kind == INSIDE), minlength=count + 1)[1:]

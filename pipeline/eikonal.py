@@ -3,12 +3,13 @@
 HFRep (hfrep seed, section 5.1 step 2 and section 6.1) needs the unsigned distance
 ``F_DF(p) = d(p, dG)`` (eq. 19) to the zero set of the FRep function, obtained as the
 viscosity solution of the eikonal equation ``|grad phi| = 1`` (eq. 22 with speed 1).
-We solve it with the Fast Iterative Method of Jeong & Whitaker (2008) in its block form:
-an active list of 8^3 blocks (the OpenVDB leaves of ``BlockGrid``); a block on the list is
-relaxed with Gauss-Seidel sweeps of the first-order Godunov upwind update until it
-converges, and a converged block puts those neighbours whose ghost (face) values it
-changed back on the list. The solution is the fixed point of the same monotone scheme
-that fast marching solves, so it does not depend on the visiting order.
+We solve it with the Fast Iterative Method of Jeong & Whitaker (2008) in its block form
+(kernels in :mod:`pipeline.fim`): an active list of 8^3 blocks (the OpenVDB leaves of
+``BlockGrid``); a block on the list is relaxed with Gauss-Seidel sweeps of the upwind update
+until it converges, and a converged block puts those neighbours whose ghost (face) values it
+changed back on the list. ``order=1`` is the first-order Godunov scheme, the fixed point of
+the same monotone scheme that fast marching solves; ``order=2`` (default) continues from it
+with the second-order upwind differences of Sethian's second-order fast marching.
 
 Pipeline of ``solve_distance``:
 
@@ -20,9 +21,9 @@ Pipeline of ``solve_distance``:
    inside, hfrep seed section 7) and the outside blocks that can hold a voxel closer than
    ``max_distance`` to the surface;
 3. initialisation at sub-voxel accuracy: a voxel with a sign change towards an axis
-   neighbour gets ``|f| / |grad f|`` (central differences of frep: the distance to the
-   tangent plane of the zero set, exact for a planar interface of any orientation),
-   capped by the linearly interpolated axis crossings; those voxels are frozen;
+   neighbour gets the distance to the zero set of the quadratic fit of frep on its 3x3x3
+   neighbourhood (closest-point iteration), or ``|f| / |grad f|`` where that is not
+   available (order 1, or a neighbour outside the band); those voxels are frozen;
 4. block FIM (Numba, on a block-neighbour table: no hashing in the kernel); outside
    voxels farther than ``max_distance`` are never accepted, so the outward front stops
    there while the interior is always solved completely.
@@ -42,9 +43,10 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
+from pipeline.fim import EXCLUDED, FREE, FROZEN, fim, init_interface
 from pipeline.grid import LEAF, BlockGrid, linear_transform, pack_keys, vdb, write_blocks
 
-FREE, FROZEN, EXCLUDED = 0, 1, 2
+SECOND_ORDER_VISITS = 50  # block visits per solved block before the second-order pass stops
 _FACE_DIRS = np.array(
     [[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], dtype=np.int64
 )
@@ -75,6 +77,16 @@ def block_neighbours(grid: BlockGrid) -> np.ndarray:
     return nbr
 
 
+def block_neighbours27(grid: BlockGrid) -> np.ndarray:
+    """(L,27) blocks at every offset (-1..1)^3, row (dx+1)*9 + (dy+1)*3 + (dz+1); -1 if absent."""
+    r = np.arange(-1, 2)
+    offs = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    nbr = np.empty((len(grid.origins), 27), dtype=np.int64)
+    for f, step in enumerate(offs):
+        nbr[:, f] = grid.block_index(grid.origins + LEAF * step)
+    return nbr
+
+
 # --- Numba kernels ----------------------------------------------------------------------
 @njit(cache=True, inline="always")
 def resolve_voxel(nbr, b, i, j, k):
@@ -93,225 +105,6 @@ def resolve_voxel(nbr, b, i, j, k):
     elif k > 7:
         b, k = nbr[b, 5], 0
     return b, i, j, k
-
-
-@njit(cache=True, inline="always")
-def _get(d, nbr, b, i, j, k):
-    """Value at local (i, j, k) of block b where one index may be -1 or 8 (face ghost)."""
-    b, i, j, k = resolve_voxel(nbr, b, i, j, k)
-    if b < 0:
-        return np.inf
-    return d[b, i, j, k]
-
-
-@njit(cache=True, inline="always")
-def _godunov(a, b, c):
-    """First-order Godunov upwind solution of |grad u| = 1 with unit spacing.
-
-    ``a, b, c`` are the smaller neighbour values along x, y, z (Jeong & Whitaker 2008,
-    eq. 3 solved in closed form for 1, 2 and 3 upwind directions).
-    """
-    if a > b:
-        a, b = b, a
-    if b > c:
-        b, c = c, b
-    if a > b:
-        a, b = b, a
-    u = a + 1.0
-    if u <= b:
-        return u
-    u = 0.5 * (a + b + math.sqrt(2.0 - (a - b) * (a - b)))
-    if u <= c:
-        return u
-    s = a + b + c
-    q = s * s - 3.0 * (a * a + b * b + c * c - 1.0)
-    return (s + math.sqrt(max(q, 0.0))) / 3.0
-
-
-@njit(cache=True)
-def _load_block(d, nbr, b, buf):
-    """Copy block b and its six face ghost layers into the (10,10,10) buffer."""
-    for i in range(8):
-        for j in range(8):
-            for k in range(8):
-                buf[i + 1, j + 1, k + 1] = d[b, i, j, k]
-    for u in range(8):
-        for v in range(8):
-            n = nbr[b, 0]
-            buf[0, u + 1, v + 1] = d[n, 7, u, v] if n >= 0 else np.inf
-            n = nbr[b, 1]
-            buf[9, u + 1, v + 1] = d[n, 0, u, v] if n >= 0 else np.inf
-            n = nbr[b, 2]
-            buf[u + 1, 0, v + 1] = d[n, u, 7, v] if n >= 0 else np.inf
-            n = nbr[b, 3]
-            buf[u + 1, 9, v + 1] = d[n, u, 0, v] if n >= 0 else np.inf
-            n = nbr[b, 4]
-            buf[u + 1, v + 1, 0] = d[n, u, v, 7] if n >= 0 else np.inf
-            n = nbr[b, 5]
-            buf[u + 1, v + 1, 9] = d[n, u, v, 0] if n >= 0 else np.inf
-
-
-@njit(cache=True)
-def _relax_block(d, state, inside, nbr, b, limit, tol, max_sweeps, buf):
-    """Gauss-Seidel sweeps (alternating the 8 orderings) until block b converges.
-
-    Works on a (10,10,10) copy of the block with its face ghosts, so the inner loop has no
-    neighbour lookups. Returns (bitmask of faces whose voxels changed, voxel updates, sweeps).
-    """
-    _load_block(d, nbr, b, buf)
-    faces = 0
-    updates = 0
-    sweeps = 0
-    st = state[b]
-    ins = inside[b]
-    for it in range(max_sweeps):
-        sweeps += 1
-        changed = False
-        sx = 1 if (it & 1) == 0 else -1
-        sy = 1 if (it & 2) == 0 else -1
-        sz = 1 if (it & 4) == 0 else -1
-        for ii in range(8):
-            i = ii if sx > 0 else 7 - ii
-            for jj in range(8):
-                j = jj if sy > 0 else 7 - jj
-                for kk in range(8):
-                    k = kk if sz > 0 else 7 - kk
-                    if st[i, j, k] != 0:
-                        continue
-                    ax = min(buf[i, j + 1, k + 1], buf[i + 2, j + 1, k + 1])
-                    ay = min(buf[i + 1, j, k + 1], buf[i + 1, j + 2, k + 1])
-                    az = min(buf[i + 1, j + 1, k], buf[i + 1, j + 1, k + 2])
-                    if min(ax, min(ay, az)) == np.inf:
-                        continue
-                    u = _godunov(ax, ay, az)
-                    if u > limit and not ins[i, j, k]:
-                        continue
-                    if u < buf[i + 1, j + 1, k + 1] - tol:
-                        buf[i + 1, j + 1, k + 1] = u
-                        updates += 1
-                        changed = True
-                        faces |= (i == 0) * 1 | (i == 7) * 2 | (j == 0) * 4
-                        faces |= (j == 7) * 8 | (k == 0) * 16 | (k == 7) * 32
-        if not changed:
-            break
-    if updates:
-        for i in range(8):
-            for j in range(8):
-                for k in range(8):
-                    d[b, i, j, k] = buf[i + 1, j + 1, k + 1]
-    return faces, updates, sweeps
-
-
-@njit(cache=True)
-def _fim(d, state, inside, nbr, seeds, limit, tol, max_sweeps):
-    """Block Fast Iterative Method (Jeong & Whitaker 2008, Alg. 1 with blocks as list items).
-
-    ``seeds``: blocks that start on the active list. Returns (block visits, voxel updates,
-    sweeps).
-    """
-    nb = d.shape[0]
-    queue = np.empty(nb + 1, dtype=np.int64)
-    on_list = np.zeros(nb, dtype=np.bool_)
-    head = 0
-    tail = 0
-    for s in seeds:
-        if not on_list[s]:
-            on_list[s] = True
-            queue[tail] = s
-            tail = (tail + 1) % (nb + 1)
-    visits = 0
-    updates = 0
-    sweeps = 0
-    buf = np.empty((10, 10, 10))
-    while head != tail:
-        b = queue[head]
-        head = (head + 1) % (nb + 1)
-        on_list[b] = False
-        faces, n_up, n_sw = _relax_block(d, state, inside, nbr, b, limit, tol, max_sweeps, buf)
-        visits += 1
-        updates += n_up
-        sweeps += n_sw
-        for f in range(6):
-            if faces & (1 << f):
-                n = nbr[b, f]
-                if n >= 0 and not on_list[n]:
-                    on_list[n] = True
-                    queue[tail] = n
-                    tail = (tail + 1) % (nb + 1)
-    return visits, updates, sweeps
-
-
-@njit(cache=True)
-def _init_interface(f, fact, d, state, nbr):
-    """Freeze voxels next to a sign change with sub-voxel distances (voxel units).
-
-    A voxel with an active axis neighbour of opposite sign gets ``|f| / |grad f|`` (central
-    differences of frep, one-sided where a neighbour is missing): the distance to the
-    first-order (tangent-plane) approximation of the zero set, exact for a planar
-    interface at any orientation. It is capped by the linearly interpolated crossing
-    ``theta = f_v / (f_v - f_n)`` on each axis with a sign change, since those crossings
-    lie on the surface. Returns the number of frozen voxels.
-    """
-    count = 0
-    for b in range(f.shape[0]):
-        for i in range(8):
-            for j in range(8):
-                for k in range(8):
-                    if not fact[b, i, j, k] or state[b, i, j, k] == 2:
-                        continue
-                    fv = f[b, i, j, k]
-                    if fv == 0.0:
-                        d[b, i, j, k] = 0.0
-                        state[b, i, j, k] = 1
-                        count += 1
-                        continue
-                    cap = np.inf
-                    g2 = 0.0
-                    for axis in range(3):
-                        fl, al = _axis_nb(f, fact, nbr, b, i, j, k, axis, -1)
-                        fh, ah = _axis_nb(f, fact, nbr, b, i, j, k, axis, 1)
-                        if al and (fv > 0.0) != (fl > 0.0):
-                            cap = min(cap, fv / (fv - fl))
-                        if ah and (fv > 0.0) != (fh > 0.0):
-                            cap = min(cap, fv / (fv - fh))
-                        if al and ah:
-                            g = 0.5 * (fh - fl)
-                        elif ah:
-                            g = fh - fv
-                        elif al:
-                            g = fv - fl
-                        else:
-                            g = 0.0
-                        g2 += g * g
-                    if cap == np.inf:
-                        continue
-                    dist = abs(fv) / math.sqrt(g2) if g2 > 0.0 else cap
-                    d[b, i, j, k] = min(dist, cap)
-                    state[b, i, j, k] = 1
-                    count += 1
-    return count
-
-
-@njit(cache=True, inline="always")
-def _axis_nb(f, fact, nbr, b, i, j, k, axis, side):
-    """(value, active) of the neighbour one step along ``axis`` in direction ``side``."""
-    if axis == 0:
-        i += side
-    elif axis == 1:
-        j += side
-    else:
-        k += side
-    if not _get_active(fact, nbr, b, i, j, k):
-        return 0.0, False
-    return _get(f, nbr, b, i, j, k), True
-
-
-@njit(cache=True, inline="always")
-def _get_active(a, nbr, b, i, j, k):
-    b, i, j, k = resolve_voxel(nbr, b, i, j, k)
-    if b < 0:
-        return False
-    return a[b, i, j, k]
 
 
 @njit(cache=True)
@@ -475,6 +268,7 @@ def solve_distance(
     inside_boxes=None,
     tol: float = 1e-6,
     max_sweeps: int = 64,
+    order: int = 2,
 ) -> EikonalResult:
     """Unsigned distance to the zero set of ``frep`` by the block Fast Iterative Method.
 
@@ -484,8 +278,11 @@ def solve_distance(
     ``domain_index_bounds``: ((i0,j0,k0), (i1,j1,k1)) inclusive voxel bounds of the domain
     (default: the bounding box of the frep blocks). ``inside_boxes``: (B,2,3) inclusive
     index boxes proven inside (from the voxeliser), used to sign unbanded regions.
-    ``tol``: convergence tolerance in voxel units.
+    ``tol``: convergence tolerance in voxel units. ``order``: 1 (first-order Godunov) or 2
+    (first order, then the second-order scheme from that solution; see :mod:`pipeline.fim`).
     """
+    if order not in (1, 2):
+        raise ValueError(f"order must be 1 or 2, not {order!r}")
     t0 = time.perf_counter()
     h = float(frep.voxel_size)
     if isinstance(max_distance, str):
@@ -502,16 +299,16 @@ def solve_distance(
     keep = band_mask | (block_sign > 0) | ((block_sign < 0) & _near_band(band_mask, max_vox))
 
     grid, sign, f, fact = _assemble(band, band_sign, block_sign, keep, lat_lo)
-    nbr = block_neighbours(grid)
-    _flood_sign(sign, nbr)
+    _flood_sign(sign, block_neighbours(grid))
     inside = sign > 0
     state = _excluded_state(grid.origins, lo, hi)
     d = np.full(sign.shape, np.inf)
-    n_frozen = _init_interface(f, fact, d, state, nbr)
+    nbr27 = block_neighbours27(grid)
+    n_frozen, n_quadric = init_interface(f, fact, d, state, nbr27, order == 2)
     t1 = time.perf_counter()
     seeds = np.nonzero((state == FROZEN).reshape(len(d), -1).any(axis=1))[0]
     limit = np.inf if max_vox is None else max_vox
-    visits, updates, sweeps = _fim(d, state, inside, nbr, seeds, limit, tol, max_sweeps)
+    passes = _solve(d, state, inside, nbr27, seeds, limit, tol, max_sweeps, order)
     t2 = time.perf_counter()
 
     solved = np.isfinite(d)
@@ -528,13 +325,28 @@ def solve_distance(
         "band_blocks": int(len(band.origins)),
         "solved_voxels": int(solved.sum()),
         "frozen_voxels": int(n_frozen),
-        "block_visits": int(visits),
-        "voxel_updates": int(updates),
-        "sweeps": int(sweeps),
+        "quadric_initialised": int(n_quadric),
+        "order": int(order),
+        **passes,
         "setup_seconds": round(t1 - t0, 4),
         "fim_seconds": round(t2 - t1, 4),
     }
     return EikonalResult(dist, inside, None if max_distance is None else float(max_distance), stats)
+
+
+def _solve(d, state, inside, nbr27, seeds, limit, tol, max_sweeps, order) -> dict:
+    """First-order FIM to its fixed point, then (order 2) the second-order FIM from it over
+    every solved block. Counters per pass for the manifest."""
+    visits, updates, sweeps, _ = fim(d, state, inside, nbr27, seeds, limit, tol, max_sweeps, False, 1 << 62)
+    out = {"block_visits": int(visits), "voxel_updates": int(updates), "sweeps": int(sweeps)}
+    if order == 2:
+        solved = np.nonzero(np.isfinite(d).reshape(len(d), -1).any(axis=1))[0]
+        # non-monotone: bound the work (a converged run needs a few visits per block)
+        visits, updates, sweeps, ok = fim(d, state, inside, nbr27, solved, limit, tol, max_sweeps, True,
+                                          SECOND_ORDER_VISITS * max(len(solved), 1))
+        out.update({"order2_block_visits": int(visits), "order2_voxel_updates": int(updates),
+                    "order2_sweeps": int(sweeps), "order2_converged": bool(ok)})
+    return out
 
 
 def _band_in_domain(frep: BlockGrid, lat_lo: np.ndarray, dims: np.ndarray) -> tuple[BlockGrid, np.ndarray]:

@@ -41,6 +41,7 @@ class Attribute(StageParams):
 
 class Params(StageParams):
     solver: Literal["fim"] = "fim"
+    order: Literal[1, 2] = Field(default=2, description="upwind scheme: 1 first-order Godunov, 2 second order")
     smoothing: Literal["tricubic"] = "tricubic"
     step: Literal["sigmoid", "tanh", "rational"] = Field(default="sigmoid", description="C1 step of eq. 21")
     slope: float = Field(default=0.01, gt=0, description="slope of the step (eq. 23), FRep units")
@@ -77,7 +78,7 @@ def run(ctx, p: Params) -> dict:
     dom, frep = ctx.job.domain, ctx.blocks["frep"]
     h, band = dom.voxel_size, float(ctx.data["band"])
     maxd = 10 * h if p.max_distance is None else p.max_distance
-    res = solve_distance(frep, maxd, (dom.index_min, dom.index_max), ctx.data["inside_boxes"])
+    res = solve_distance(frep, maxd, (dom.index_min, dom.index_max), ctx.data["inside_boxes"], order=p.order)
     meta = ctx.grid_metadata("hfrep", p)
     hf = hfrep_blocks(frep, res, p.step, p.slope)
     for name in ("surface", "hfrep", "density"):  # keep these first in the file, attributes after

@@ -69,55 +69,101 @@ def band_grid(fn, n: int, band: float = 3.0) -> tuple[BlockGrid, tuple[np.ndarra
     return grid, (lo, lo + n - 1)
 
 
-def solved(fn, n: int, max_vox: float | None = 3.0):
+def solved(fn, n: int, max_vox: float | None = 3.0, order: int = 2):
     frep, dom = band_grid(fn, n)
     h = 2.0 / n
-    res = solve_distance(frep, None if max_vox is None else max_vox * h, dom)
+    res = solve_distance(frep, None if max_vox is None else max_vox * h, dom, order=order)
     return frep, dom, res
 
 
+def _errors(fn, n: int, order: int = 2) -> tuple[float, float]:
+    _, _, res = solved(fn, n, order=order)
+    ijk, v = signed_distance_blocks(res).active_voxels()
+    err = np.abs(v + fn(ijk * (2.0 / n)))
+    return float(err.max()), float(err.mean())
+
+
 @pytest.mark.parametrize("name", sorted(SHAPES))
-def test_error_shrinks_at_first_order(name: str) -> None:
+def test_error_shrinks_with_voxel_size(name: str) -> None:
     fn = SHAPES[name]
-    rows = []
-    for n in (32, 64, 128):
-        _, _, res = solved(fn, n)
-        ijk, v = signed_distance_blocks(res).active_voxels()
-        err = np.abs(v + fn(ijk * (2.0 / n)))
-        rows.append((n, err.max(), err.mean()))
+    rows = [(n, *_errors(fn, n)) for n in (32, 64, 128)]
     print(f"\n{name}: n, max error, mean error (world units, domain [-1,1]^3)")
     for n, emax, emean in rows:
         print(f"  {n:4d}  {emax:.5f}  {emean:.6f}  max/h={emax * n / 2:.2f}")
     for (_, m0, a0), (_, m1, a1) in zip(rows[:-1], rows[1:], strict=True):
-        # first order with the log factor of converging fronts: observed order >= 0.6
-        assert math.log2(m0 / m1) >= 0.6, rows
-        assert math.log2(a0 / a1) >= 0.6, rows
-    assert rows[-1][1] < 1.5 * 2.0 / 128  # max error below 1.5 voxels at 128^3
+        # the max sits at the medial axis and at convex corners (point sources): first order;
+        # the mean converges faster than first order
+        assert math.log2(m0 / m1) >= 0.8, rows
+        assert math.log2(a0 / a1) >= 1.2, rows
+    assert rows[-1][1] < 1.0 * 2.0 / 128  # max error below one voxel at 128^3
 
 
-def _grad_magnitudes(name: str, n: int = 128) -> np.ndarray:
-    _, _, res = solved(SHAPES[name], n)
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_second_order_beats_first_order(name: str) -> None:
+    e1 = _errors(SHAPES[name], 96, order=1)
+    e2 = _errors(SHAPES[name], 96, order=2)
+    assert e2[1] < 0.5 * e1[1], (e1, e2)
+    assert e2[0] < e1[0], (e1, e2)
+
+
+def _vs_scikit_fmm(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(our error, scikit-fmm order-2 error, exact signed distance) on the dense 96^3 domain."""
+    skfmm = pytest.importorskip("skfmm")
+    n = 96
+    h = 2.0 / n
+    fn = SHAPES[name]
+    frep, dom = band_grid(fn, n)
+    axes = [np.arange(dom[0][a], dom[1][a] + 1) for a in range(3)]
+    ijk = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    exact = -fn(ijk * h)
+    theirs = np.abs(skfmm.distance(-fn(ijk * h), dx=h, order=2) - exact)
+    sd = signed_distance_blocks(solve_distance(frep, None, dom))
+    ours = np.abs(sd.sample_voxels(ijk.reshape(-1, 3)).reshape(exact.shape) - exact)
+    for label, sel in (("<= 10 voxels", np.abs(exact) <= 10 * h), ("whole domain", np.ones_like(exact, bool))):
+        print(f"\n{name} {label}: ours max {ours[sel].max() / h:.3f} mean {ours[sel].mean() / h:.4f} | "
+              f"skfmm max {theirs[sel].max() / h:.3f} mean {theirs[sel].mean() / h:.4f} (voxels)")
+    return ours, theirs, exact
+
+
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_no_less_accurate_than_scikit_fmm_order_2(name: str) -> None:
+    """The issue's bar: no less accurate than dense fast marching (scikit-fmm, order 2), on the
+    region the stage solves by default (10 voxels out) and the shell inside."""
+    ours, theirs, exact = _vs_scikit_fmm(name)
+    near = np.abs(exact) <= 10 * 2.0 / 96
+    assert ours[near].mean() <= theirs[near].mean()
+    if name != "box":
+        assert ours[near].max() <= theirs[near].max()
+
+
+@pytest.mark.xfail(strict=True, reason="convex box corners (point-source fans): max 0.94 voxel vs skfmm's 0.73")
+def test_box_corner_max_error_matches_scikit_fmm() -> None:
+    ours, theirs, exact = _vs_scikit_fmm("box")
+    near = np.abs(exact) <= 10 * 2.0 / 96
+    assert ours[near].max() <= theirs[near].max()
+
+
+def _grad_magnitudes(name: str, n: int = 128, order: int = 2) -> np.ndarray:
+    _, _, res = solved(SHAPES[name], n, order=order)
     ijk, g = central_gradient(signed_distance_blocks(res))
     h = 2.0 / n
     far = medial_distance(name, ijk * h) > 8 * h
     return np.linalg.norm(g[far], axis=1)
 
 
-@pytest.mark.parametrize("name", ["sphere", "torus"])
-def test_gradient_norm_first_order_bound(name: str) -> None:
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_gradient_norm_within_one_percent(name: str) -> None:
+    """Issue bar: |grad| within 1% of 1 on at least 99% of the voxels away from the medial axis."""
     mag = _grad_magnitudes(name)
     assert len(mag) > 10000
-    assert np.mean(np.abs(mag - 1) <= 0.05) >= 0.99
+    assert np.mean(np.abs(mag - 1) <= 0.01) >= 0.99
     assert np.all(mag > 0.5)
 
 
-@pytest.mark.xfail(
-    strict=True, reason="first-order Godunov FIM: |grad| within 1% on 34% (sphere), 36% (torus) at 128^3"
-)
-@pytest.mark.parametrize("name", ["sphere", "torus"])
-def test_gradient_norm_within_one_percent(name: str) -> None:
-    mag = _grad_magnitudes(name)
-    assert np.mean(np.abs(mag - 1) <= 0.01) >= 0.99
+def test_first_order_scheme_stays_within_five_percent() -> None:
+    mag = _grad_magnitudes("sphere", order=1)
+    assert np.mean(np.abs(mag - 1) <= 0.05) >= 0.99
+    assert np.mean(np.abs(mag - 1) <= 0.01) < 0.9  # what the second-order pass improves on
 
 
 @pytest.mark.parametrize("name", sorted(SHAPES))
@@ -155,7 +201,11 @@ def test_sparse_block_set_grows_with_surface_not_volume() -> None:
     both = dense.distance.block_index(sparse.distance.origins)
     a = sparse.distance
     same = a.active
-    assert np.allclose(a.values[same], dense.distance.values[both][same], atol=1e-6)
+    diff = np.abs(a.values[same] - dense.distance.values[both][same])
+    # the second-order pass is a non-monotone fixed-point iteration (tolerance 1e-6 voxel per
+    # update): a few voxels near the max_distance edge settle slightly differently
+    assert np.mean(diff <= 1e-6) >= 0.999
+    assert diff.max() <= 1e-3 * a.voxel_size
 
 
 @pytest.mark.parametrize("name", sorted(SHAPES))

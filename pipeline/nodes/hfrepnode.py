@@ -9,8 +9,9 @@ of the child's value (eq. 21, 23)::
 
 (:class:`pipeline.hfrep.HFRepField`). The field is C1 wherever the child is, has exactly the
 child's zero set and sign, and is distance-like: ``offset`` of an ``hfrep`` node moves the
-surface by the offset distance along the normals (a true offset, up to the first-order
-distance error), and ``blend`` / ``morph`` see distances rather than arbitrary FRep values.
+surface by the offset distance along the normals (a true offset, up to the solver's
+distance error: under a quarter voxel on smooth parts, half a voxel in edge and corner
+fans), and ``blend`` / ``morph`` see distances rather than arbitrary FRep values.
 
 Rigorous bound over a box B (inclusion property, so affine culling in the voxeliser and the
 components stage stays sound):
@@ -50,7 +51,7 @@ _ROUND = 1e-12  # relative allowance for the spline sum, step and products (>> f
 
 @register("hfrep")
 class HFRepNode(Node):
-    """``hfrep: {of: node, resolution | voxel_size, bounds, band, step, slope, max_distance}``."""
+    """``hfrep: {of: node, resolution | voxel_size, bounds, band, step, slope, max_distance, order}``."""
 
     class Params(Params):
         of: Any
@@ -61,6 +62,7 @@ class HFRepNode(Node):
         step: Literal["sigmoid", "tanh", "rational"] = "sigmoid"
         slope: Real = Field(default=0.01, gt=0)
         max_distance: Real | None = Field(default=None, gt=0, description="world units; default: all of bounds")
+        order: Literal[1, 2] = Field(default=2, description="upwind scheme of the eikonal solver")
 
         @model_validator(mode="after")
         def _check(self):
@@ -100,7 +102,7 @@ class HFRepNode(Node):
         vox = voxelise(child, imin, imax, h, p.band, 4, self.t)
         if vox.blocks.active_count == 0 or not _has_sign_change(vox.blocks):
             raise InputError("the child has no surface inside the hfrep bounds")
-        self.result = solve_distance(vox.blocks, p.max_distance, (imin, imax), vox.inside_boxes)
+        self.result = solve_distance(vox.blocks, p.max_distance, (imin, imax), vox.inside_boxes, order=p.order)
         self.hf = HFRepField(lambda q: child.evaluate(q, self.t), _spline(self.result), p.step, p.slope)
         sp = self.hf.distance
         self.voxel_size = h

@@ -1,0 +1,374 @@
+"""Numba kernels of the block Fast Iterative Method (Jeong & Whitaker 2008) on 8^3 blocks.
+
+Used by :mod:`pipeline.eikonal`. The distance array ``d`` is (L,8,8,8) in voxel units; the
+(L,27) table ``nbr27`` gives, for every block, the block at each offset (-1..1)^3 (row
+``(dx+1)*9 + (dy+1)*3 + (dz+1)``, -1 where absent), so a kernel can read any voxel up to 8
+steps outside its block without hashing.
+
+Two upwind discretisations of |grad u| = 1 share one solver (:func:`upwind_update`):
+
+* first order (Godunov): per axis the smaller neighbour ``a1``, term ``(u - a1)^2``;
+* second order (Sethian 1999, "Fast marching methods", section 4.3): where the next voxel
+  on the same side ``a2`` is known and ``a2 <= a1``, the one-sided difference
+  ``(3u - 4a1 + a2) / 2`` replaces ``u - a1``: term ``(9/4) (u - (4a1 - a2)/3)^2``. When
+  that voxel lies across the surface its value enters with a minus sign: the stencil then
+  differentiates the signed distance, which is smooth there (the unsigned one has a kink).
+
+The second-order scheme is not monotone, so it is not run from scratch: the first-order
+fixed point is computed first (monotone, converges from above) and the second-order FIM then
+iterates from it, accepting changes in either direction, until no voxel moves by more than
+``tol``. Its accuracy also needs an initial layer accurate to better than second order:
+:func:`init_interface` projects every voxel next to a sign change onto the zero set of the
+local quadratic fit of frep (Chopp 2001, "Some improvements of the fast marching method",
+closest-point iteration).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+FREE, FROZEN, EXCLUDED = 0, 1, 2
+QUADRIC_RESIDUAL = 0.02  # voxels: largest miss of the quadratic model at its stencil corners
+
+
+@njit(cache=True, inline="always")
+def locate(nbr27, b, i, j, k):
+    """(block, i, j, k) of local coordinates of block b that may lie in [-8, 15] on each axis;
+    block -1 when that block does not exist."""
+    di = -1 if i < 0 else (1 if i > 7 else 0)
+    dj = -1 if j < 0 else (1 if j > 7 else 0)
+    dk = -1 if k < 0 else (1 if k > 7 else 0)
+    n = nbr27[b, (di + 1) * 9 + (dj + 1) * 3 + (dk + 1)]
+    return n, i - 8 * di, j - 8 * dj, k - 8 * dk
+
+
+@njit(cache=True, inline="always")
+def upwind_update(bs, cs, n):
+    """Solve sum_m cs[m]^2 (u - bs[m])^2 = 1 with the Godunov choice of upwind axes.
+
+    ``bs``: the per-axis upwind values (first order: the neighbour; second order:
+    (4 a1 - a2) / 3), ``cs``: 1 or 3/2. Axes join in increasing ``bs`` while the solution
+    exceeds the next value (Jeong & Whitaker 2008, eq. 3; Sethian 1999, eq. 4.6).
+    """
+    for p in range(n):  # insertion order by bs (n <= 3)
+        for q in range(n - 1 - p):
+            if bs[q] > bs[q + 1]:
+                bs[q], bs[q + 1] = bs[q + 1], bs[q]
+                cs[q], cs[q + 1] = cs[q + 1], cs[q]
+    u = np.inf
+    a = 0.0
+    s = 0.0
+    c = -1.0
+    for m in range(n):
+        w = cs[m] * cs[m]
+        a += w
+        s += w * bs[m]
+        c += w * bs[m] * bs[m]
+        disc = s * s - a * c
+        if disc < 0.0:
+            break
+        u = (s + math.sqrt(disc)) / a
+        if m + 1 < n and u <= bs[m + 1]:
+            break
+    return u
+
+
+@njit(cache=True)
+def _load_block(d, inside, nbr27, b, buf, sbuf):
+    """Copy block b with two ghost layers on each face into the (12,12,12) buffers (distance
+    and side of the surface; edges and corners are not read by the axis stencils)."""
+    for i in range(-2, 10):
+        for j in range(-2, 10):
+            for k in range(-2, 10):
+                out = (i < 0 or i > 7) + (j < 0 or j > 7) + (k < 0 or k > 7)
+                if out > 1:
+                    continue
+                n, li, lj, lk = locate(nbr27, b, i, j, k)
+                if n < 0:
+                    buf[i + 2, j + 2, k + 2] = np.inf
+                    sbuf[i + 2, j + 2, k + 2] = False
+                else:
+                    buf[i + 2, j + 2, k + 2] = d[n, li, lj, lk]
+                    sbuf[i + 2, j + 2, k + 2] = inside[n, li, lj, lk]
+
+
+@njit(cache=True, inline="always")
+def _axis_term(buf, sbuf, i, j, k, di, dj, dk, me, order2):
+    """(b, c, known) of one axis at buffer voxel (i, j, k): the upwind side's value."""
+    lo1 = buf[i - di, j - dj, k - dk]
+    hi1 = buf[i + di, j + dj, k + dk]
+    if lo1 <= hi1:
+        a1, a2, s2 = lo1, buf[i - 2 * di, j - 2 * dj, k - 2 * dk], sbuf[i - 2 * di, j - 2 * dj, k - 2 * dk]
+    else:
+        a1, a2, s2 = hi1, buf[i + 2 * di, j + 2 * dj, k + 2 * dk], sbuf[i + 2 * di, j + 2 * dj, k + 2 * dk]
+    if a1 == np.inf:
+        return 0.0, 0.0, False
+    # across the surface the unsigned distance has a kink but the signed one is smooth: use
+    # the signed value of a second neighbour on the other side
+    if s2 != me:
+        a2 = -a2
+    if order2 and a2 <= a1:
+        return (4.0 * a1 - a2) / 3.0, 1.5, True
+    return a1, 1.0, True
+
+
+@njit(cache=True)
+def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf, sbuf, bs, cs):
+    """Gauss-Seidel sweeps (alternating the 8 orderings) until block b converges.
+
+    First order accepts only decreases (monotone scheme from above); second order accepts
+    any change larger than ``tol``. Returns (bitmask of faces whose ghost layers changed,
+    voxel updates, sweeps).
+    """
+    _load_block(d, inside, nbr27, b, buf, sbuf)
+    depth = 2 if order2 else 1  # ghost layers a neighbour reads
+    faces = 0
+    updates = 0
+    sweeps = 0
+    st = state[b]
+    for it in range(max_sweeps):
+        sweeps += 1
+        changed = False
+        for ii in range(8):
+            i = ii if (it & 1) == 0 else 7 - ii
+            for jj in range(8):
+                j = jj if (it & 2) == 0 else 7 - jj
+                for kk in range(8):
+                    k = kk if (it & 4) == 0 else 7 - kk
+                    if st[i, j, k] != FREE:
+                        continue
+                    me = sbuf[i + 2, j + 2, k + 2]
+                    n = 0
+                    for ax in range(3):
+                        bv, cv, ok = _axis_term(buf, sbuf, i + 2, j + 2, k + 2, int(ax == 0), int(ax == 1),
+                                                int(ax == 2), me, order2)
+                        if ok:
+                            bs[n] = bv
+                            cs[n] = cv
+                            n += 1
+                    if n == 0:
+                        continue
+                    u = upwind_update(bs, cs, n)
+                    if u > limit and not me:
+                        continue
+                    old = buf[i + 2, j + 2, k + 2]
+                    if order2:
+                        if not abs(u - old) > tol:  # also catches inf - inf
+                            continue
+                    elif not u < old - tol:
+                        continue
+                    buf[i + 2, j + 2, k + 2] = u
+                    updates += 1
+                    changed = True
+                    faces |= (i < depth) * 1 | (i >= 8 - depth) * 2 | (j < depth) * 4
+                    faces |= (j >= 8 - depth) * 8 | (k < depth) * 16 | (k >= 8 - depth) * 32
+        if not changed:
+            break
+    if updates:
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    d[b, i, j, k] = buf[i + 2, j + 2, k + 2]
+    return faces, updates, sweeps
+
+
+@njit(cache=True)
+def fim(d, state, inside, nbr27, seeds, limit, tol, max_sweeps, order2, max_visits):
+    """Block Fast Iterative Method (Jeong & Whitaker 2008, Alg. 1 with blocks as list items).
+
+    ``seeds``: blocks that start on the active list. A converged block puts the face
+    neighbours whose ghost layers it changed back on the list. ``max_visits`` bounds the
+    work of the (non-monotone) second-order pass. Returns (block visits, voxel updates,
+    sweeps, converged).
+    """
+    nb = d.shape[0]
+    queue = np.empty(nb + 1, dtype=np.int64)
+    on_list = np.zeros(nb, dtype=np.bool_)
+    head = 0
+    tail = 0
+    for s in seeds:
+        if not on_list[s]:
+            on_list[s] = True
+            queue[tail] = s
+            tail = (tail + 1) % (nb + 1)
+    visits = 0
+    updates = 0
+    sweeps = 0
+    buf = np.empty((12, 12, 12))
+    sbuf = np.zeros((12, 12, 12), dtype=np.bool_)
+    bs = np.empty(3)
+    cs = np.empty(3)
+    face_row = (4, 22, 10, 16, 12, 14)  # nbr27 rows of -x, +x, -y, +y, -z, +z
+    while head != tail:
+        if visits >= max_visits:
+            return visits, updates, sweeps, False
+        b = queue[head]
+        head = (head + 1) % (nb + 1)
+        on_list[b] = False
+        faces, n_up, n_sw = relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2,
+                                        buf, sbuf, bs, cs)
+        visits += 1
+        updates += n_up
+        sweeps += n_sw
+        for f in range(6):
+            if faces & (1 << f):
+                n = nbr27[b, face_row[f]]
+                if n >= 0 and not on_list[n]:
+                    on_list[n] = True
+                    queue[tail] = n
+                    tail = (tail + 1) % (nb + 1)
+    return visits, updates, sweeps, True
+
+
+# --- initialisation next to the zero set -------------------------------------------------------
+@njit(cache=True, inline="always")
+def _value(f, fact, nbr27, b, i, j, k):
+    """(frep value, known) of a voxel given in block b's local coordinates."""
+    n, li, lj, lk = locate(nbr27, b, i, j, k)
+    if n < 0 or not fact[n, li, lj, lk]:
+        return 0.0, False
+    return f[n, li, lj, lk], True
+
+
+@njit(cache=True)
+def _quadric_fit(f, fact, nbr27, b, i, j, k, g, hess):
+    """Gradient and Hessian of frep at a voxel by central differences on its 3x3x3
+    neighbourhood (the local quadratic model). False when a neighbour is not in the band, or
+    when the model misses the eight corner samples (which it does not use) by more than
+    ``QUADRIC_RESIDUAL`` voxels: a kink of frep (a CSG edge, min/max) inside the stencil."""
+    vals = np.empty((3, 3, 3))
+    for di in range(3):
+        for dj in range(3):
+            for dk in range(3):
+                v, ok = _value(f, fact, nbr27, b, i + di - 1, j + dj - 1, k + dk - 1)
+                if not ok:
+                    return False
+                vals[di, dj, dk] = v
+    c = vals[1, 1, 1]
+    g[0] = 0.5 * (vals[2, 1, 1] - vals[0, 1, 1])
+    g[1] = 0.5 * (vals[1, 2, 1] - vals[1, 0, 1])
+    g[2] = 0.5 * (vals[1, 1, 2] - vals[1, 1, 0])
+    hess[0, 0] = vals[2, 1, 1] - 2.0 * c + vals[0, 1, 1]
+    hess[1, 1] = vals[1, 2, 1] - 2.0 * c + vals[1, 0, 1]
+    hess[2, 2] = vals[1, 1, 2] - 2.0 * c + vals[1, 1, 0]
+    hess[0, 1] = hess[1, 0] = 0.25 * (vals[2, 2, 1] - vals[2, 0, 1] - vals[0, 2, 1] + vals[0, 0, 1])
+    hess[0, 2] = hess[2, 0] = 0.25 * (vals[2, 1, 2] - vals[2, 1, 0] - vals[0, 1, 2] + vals[0, 1, 0])
+    hess[1, 2] = hess[2, 1] = 0.25 * (vals[1, 2, 2] - vals[1, 2, 0] - vals[1, 0, 2] + vals[1, 0, 0])
+    gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+    if gn == 0.0:
+        return False
+    for si in (-1, 1):
+        for sj in (-1, 1):
+            for sk in (-1, 1):
+                q = c + si * g[0] + sj * g[1] + sk * g[2]
+                q += 0.5 * (hess[0, 0] + hess[1, 1] + hess[2, 2])
+                q += si * sj * hess[0, 1] + si * sk * hess[0, 2] + sj * sk * hess[1, 2]
+                if abs(q - vals[si + 1, sj + 1, sk + 1]) > QUADRIC_RESIDUAL * gn:
+                    return False
+    return True
+
+
+@njit(cache=True)
+def closest_point_distance(f0, g, hess, iterations=12):
+    """Distance from the origin to the zero set of q(x) = f0 + g.x + x.H.x / 2 (voxel units).
+
+    Chopp (2001) closest-point iteration: a Newton step onto q = 0 along grad q plus the step
+    that removes the tangential part of (origin - x). Returns inf when it does not converge.
+    """
+    x = np.zeros(3)
+    gx = np.empty(3)
+    step = np.inf
+    for _ in range(iterations):
+        for a in range(3):
+            gx[a] = g[a] + hess[a, 0] * x[0] + hess[a, 1] * x[1] + hess[a, 2] * x[2]
+        qx = f0
+        for a in range(3):
+            qx += x[a] * (g[a] + 0.5 * (hess[a, 0] * x[0] + hess[a, 1] * x[1] + hess[a, 2] * x[2]))
+        g2 = gx[0] * gx[0] + gx[1] * gx[1] + gx[2] * gx[2]
+        if g2 == 0.0:
+            return np.inf
+        yg = -(x[0] * gx[0] + x[1] * gx[1] + x[2] * gx[2])
+        step = 0.0
+        for a in range(3):
+            delta = -qx * gx[a] / g2 + (-x[a] - yg * gx[a] / g2)
+            x[a] += delta
+            step += delta * delta
+        if step < 1e-24:
+            break
+    if step > 1e-12:
+        return np.inf
+    return math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
+
+
+@njit(cache=True)
+def init_interface(f, fact, d, state, nbr27, quadric):
+    """Freeze the voxels next to a sign change with sub-voxel distances (voxel units).
+
+    A voxel with an axis neighbour of opposite sign gets, when ``quadric`` is set and its
+    3x3x3 neighbourhood is in the band, the distance to the zero set of the local quadratic
+    model (third-order accurate for a smooth surface: what the second-order scheme needs);
+    otherwise ``|f| / |grad f|``, the distance to the tangent plane. Both are capped by the
+    linearly interpolated axis crossings (points on the surface up to O(h^2)); the quadric
+    distance is rejected when it exceeds that cap by more than a tenth of a voxel (a kink of
+    the surface inside the stencil). Returns (frozen voxels, voxels initialised by the quadric).
+    """
+    count = 0
+    n_quad = 0
+    g = np.empty(3)
+    hess = np.empty((3, 3))
+    for b in range(f.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if not fact[b, i, j, k] or state[b, i, j, k] == EXCLUDED:
+                        continue
+                    fv = f[b, i, j, k]
+                    if fv == 0.0:
+                        d[b, i, j, k] = 0.0
+                        state[b, i, j, k] = FROZEN
+                        count += 1
+                        continue
+                    cap, g2 = _crossing_cap(f, fact, nbr27, b, i, j, k, fv)
+                    if cap == np.inf:
+                        continue
+                    dist = np.inf
+                    if quadric and _quadric_fit(f, fact, nbr27, b, i, j, k, g, hess):
+                        dist = closest_point_distance(fv, g, hess)
+                        if dist > cap + 0.1:
+                            dist = np.inf
+                        else:
+                            n_quad += 1
+                    if dist == np.inf:
+                        dist = min(abs(fv) / math.sqrt(g2) if g2 > 0.0 else cap, cap)
+                    d[b, i, j, k] = dist
+                    state[b, i, j, k] = FROZEN
+                    count += 1
+    return count, n_quad
+
+
+@njit(cache=True)
+def _crossing_cap(f, fact, nbr27, b, i, j, k, fv):
+    """(nearest linearly interpolated axis crossing, |grad f|^2 by central differences)."""
+    cap = np.inf
+    g2 = 0.0
+    for axis in range(3):
+        di, dj, dk = int(axis == 0), int(axis == 1), int(axis == 2)
+        fl, al = _value(f, fact, nbr27, b, i - di, j - dj, k - dk)
+        fh, ah = _value(f, fact, nbr27, b, i + di, j + dj, k + dk)
+        if al and (fv > 0.0) != (fl > 0.0):
+            cap = min(cap, fv / (fv - fl))
+        if ah and (fv > 0.0) != (fh > 0.0):
+            cap = min(cap, fv / (fv - fh))
+        if al and ah:
+            gg = 0.5 * (fh - fl)
+        elif ah:
+            gg = fh - fv
+        elif al:
+            gg = fv - fl
+        else:
+            gg = 0.0
+        g2 += gg * gg
+    return cap, g2

@@ -243,12 +243,12 @@ def unify(parts: list[BrickCells], cuts: list[np.ndarray], model, origin, size: 
     st["border_cells"] = int((tree.kind == cc.BORDER).sum())
     labels = cc._scan_order(tree, raw[order], count)
     merge = time.perf_counter() - t0
-    st["bricks"] = {"bricks": len(parts), "local_clusters": int(offsets[-1]), "ghost_links": ghosts,
+    st["bricked"] = {"bricks": len(parts), "local_clusters": int(offsets[-1]), "ghost_links": ghosts,
                     "cross_face_pairs": int(len(ra)), "cross_face_unions": int(nodes - count),
                     "driver_cells": int(len(fix[0])),
                     "worker_seconds": round(float(sum(p.stats.get("seconds", 0.0) for p in parts)), 4),
                     "merge_seconds": round(merge, 4)}
-    st["seconds"] = st["bricks"]["worker_seconds"]
+    st["seconds"] = st["bricked"]["worker_seconds"]
     return cc.summarise(tree, labels, count, t0)
 
 

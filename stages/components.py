@@ -4,6 +4,8 @@ components seed: Algorithm 1 enumerates the model on an octree aligned with the 
 (finest cell = the tolerance, a power-of-two multiple of the voxel size, cell faces on voxel
 faces), section 4.2 labels the clusters, and every active voxel of the ``frep`` grid gets the
 label of the cell holding it (band voxels outside every kept cell: the nearest finest cell).
+With ``bricks:`` the enumeration and the local labelling run per brick on the workers and the
+labels are unified across brick faces here (pipeline.component_bricks); the result is the same.
 Writes the ``component`` grid (labels 1..N, background 0), the manifest section
 ``components``, optionally one .vdb per separated component (section 4.3), and with ``keep``
 replaces ``frep`` by the kept pieces (section 5: removing small components).
@@ -64,13 +66,14 @@ def octree_frame(domain, tolerance: float | None, depth: int | None) -> tuple[np
 def run(ctx, p: Params) -> dict:
     job = ctx.job
     origin, size, depth, region = octree_frame(job.domain, p.tolerance, p.depth)
-    found = cc.detect(job.model, origin, size, depth, job.t, region)
+    found = _detect(ctx, origin, size, depth, region)
     blocks: BlockGrid = ctx.blocks["frep"]
     labels = _voxel_labels(found, blocks)
     kept = _kept(found, p.keep)
     section = {"count": found.count, "volumes": found.volumes.tolist(),
                "volume_bounds": found.volume_bounds.tolist(), "tolerance": size / 2**depth,
-               "depth": depth, "kept": kept, "label_order": "scan (x, then y, then z) of the lowest cell"}
+               "depth": depth, "kept": kept, "label_order": "scan (x, then y, then z) of the lowest cell",
+               "labelling": {"bricked": bool(job.bricks), **found.tree.stats.get("bricked", {})}}
     if len(kept) < found.count:
         labels = _keep_pieces(ctx, found, labels, kept)
     ctx.grids["component"] = _label_grid(ctx, p, blocks if len(kept) == found.count else ctx.blocks["frep"],
@@ -83,6 +86,20 @@ def run(ctx, p: Params) -> dict:
     st = dict(found.tree.stats)
     st.update({"count": found.count, "cells": len(found.tree), "labelling_seconds": round(found.seconds, 4)})
     return st
+
+
+def _detect(ctx, origin, size: float, depth: int, region) -> cc.Components:
+    """Algorithm 1 + section 4.2 on the whole domain, or with ``bricks:`` brick by brick on the
+    executor's workers (pipeline.component_bricks; each worker loads the job by reference)."""
+    job = ctx.job
+    if not job.bricks:
+        return cc.detect(job.model, origin, size, depth, job.t, region)
+    from pipeline import component_bricks as cb
+    from pipeline.batch import ref_of
+
+    cells, phase = cb.voxel_bricks(job.bricks, job.domain.index_min, job.domain.voxel_size, size, depth)
+    return cb.detect_bricked(job.model, origin, size, depth, cells, job.t, region, phase=phase,
+                             run_map=ctx.map, source=ref_of(job))
 
 
 def _voxel_labels(found: cc.Components, blocks: BlockGrid) -> np.ndarray:

@@ -5,8 +5,11 @@
    memory (RSS above the warmed-up baseline, each run in a fresh process), counts.
 2. Algorithm 1 with corner control range and continuation vs plain revised-affine subdivision
    ([17], ``continuation=False``): the trend of the paper's Table 1.
+3. Components on bricks (pipeline.component_bricks) run inline vs the unsplit detection: the
+   cost of the split (coarse levels revisited per brick, per-brick call overhead) and of the
+   driver's label unification; results checked equal.
 
-Run: ``.venv/bin/python bench/components.py`` (prints Markdown tables).
+Run: ``.venv/bin/python bench/components.py`` (prints Markdown tables; ``--bricked``: table 3 only).
 """
 
 from __future__ import annotations
@@ -85,6 +88,24 @@ def continuation(model, lo: float, size: float, depth: int, on: bool) -> dict:
             "affine_tests": tree.stats["affine_tests"], "border": tree.stats["border_cells"]}
 
 
+def bricked(model, lo: float, size: float, depth: int, brick: int) -> dict:
+    """Unsplit ``detect`` vs ``detect_bricked`` inline (one process: the work a pool shares)."""
+    from pipeline import component_bricks as cb
+    from pipeline import components as cc
+
+    origin = np.full(3, lo)
+    cb.detect_bricked(model, origin, size, 4, 4)  # warm up
+    t0 = time.perf_counter()
+    whole = cc.detect(model, origin, size, depth)
+    t1 = time.perf_counter()
+    split = cb.detect_bricked(model, origin, size, depth, brick)
+    t2 = time.perf_counter()
+    info = split.tree.stats["bricked"]
+    same = split.count == whole.count and np.array_equal(split.labels, whole.labels)
+    return {"unsplit_s": t1 - t0, "bricked_s": t2 - t1, "merge_s": info["merge_seconds"], "bricks": info["bricks"],
+            "unions": info["cross_face_unions"], "cells": len(whole.tree), "count": whole.count, "same": bool(same)}
+
+
 def _child(kind: str, name: str, depth: int, flag: str = "") -> dict:
     cmd = [sys.executable, __file__, "--one", kind, name, str(depth), flag]
     out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=3600)
@@ -100,6 +121,8 @@ def _one(kind: str, name: str, depth: int, flag: str) -> None:
         res = sparse(model, lo, size, depth)
     elif kind == "dense":
         res = dense(model, lo, size, depth)
+    elif kind == "bricked":
+        res = bricked(model, lo, size, depth, int(flag))
     else:
         res = continuation(model, lo, size, depth, flag == "on")
     print(json.dumps(res))
@@ -143,9 +166,29 @@ def table_continuation() -> None:
                   f"| {on['border']} / {off['border']} | {on['count']} / {off['count']} |")
 
 
+def table_bricked() -> None:
+    print("\n### Components on bricks (inline) vs unsplit\n")
+    print("| model | depth | brick (cells) | bricks | cells | unsplit s | bricked s | ratio | merge s "
+          "| cross-face unions | same labels |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for name in ("two spheres", "demo (Fig. 3)"):
+        for depth, brick in ((7, 32), (8, 32), (8, 64)):
+            r = _child("bricked", name, depth, str(brick))
+            if "error" in r:
+                print(f"| {name} | {depth} | {brick} | {r['error']} |")
+                continue
+            print(f"| {name} | {depth} | {brick} | {r['bricks']} | {r['cells']} | {r['unsplit_s']:.2f} "
+                  f"| {r['bricked_s']:.2f} | {r['bricked_s'] / r['unsplit_s']:.1f} | {r['merge_s']:.3f} "
+                  f"| {r['unions']} | {'yes' if r['same'] else 'NO'} |")
+
+
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "--one":
         _one(sys.argv[2], sys.argv[3], int(sys.argv[4]), sys.argv[5] if len(sys.argv) > 5 else "")
     else:
+        if sys.argv[1:] == ["--bricked"]:
+            table_bricked()
+            sys.exit(0)
         table_sparse_vs_dense()
         table_continuation()
+        table_bricked()

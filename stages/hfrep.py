@@ -78,7 +78,9 @@ def run(ctx, p: Params) -> dict:
     dom, frep = ctx.job.domain, ctx.blocks["frep"]
     h, band = dom.voxel_size, float(ctx.data["band"])
     maxd = 10 * h if p.max_distance is None else p.max_distance
-    res = solve_distance(frep, maxd, (dom.index_min, dom.index_max), ctx.data["inside_boxes"], order=p.order)
+    # with bricks: the FIM runs per brick on the workers, continued across brick faces
+    res = solve_distance(frep, maxd, (dom.index_min, dom.index_max), ctx.data["inside_boxes"], order=p.order,
+                         brick=ctx.job.bricks, map_fn=ctx.map)
     meta = ctx.grid_metadata("hfrep", p)
     hf = hfrep_blocks(frep, res, p.step, p.slope)
     for name in ("surface", "hfrep", "density"):  # keep these first in the file, attributes after

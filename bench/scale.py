@@ -8,10 +8,11 @@ Prints Markdown tables (no section switch given: all three sections).
    components + hfrep + export vdb) inline, on the local process pool and on a Dask
    LocalCluster with 1 and 2 workers: jobs/second and speed-up over 1 worker. Each executor
    is started and warmed up (a batch of tiny jobs: imports, Numba caches) before the timing.
-2. Cost of bricking: the demo model (voxelise + export vdb) unsplit vs ``bricks: {size: B}``
-   inline and on a 2-worker process pool: voxelise and total seconds, and a check that the
-   ``frep`` grids are identical (active voxel count, leaf count, max |difference| of values
-   over the active bounding box, inactive values included).
+2. Cost of bricking: the demo model (voxelise + components + hfrep + export vdb) unsplit vs
+   ``bricks: {size: B}`` inline and on a 2-worker process pool: seconds per bricked stage, and
+   checks against the unsplit run: the ``frep`` grids are identical (active voxel count, leaf
+   count, max |difference| of values over the active bounding box, inactive values
+   included), the component count, and the max |difference| of the ``surface`` grids.
 3. End to end: configs/demo.yaml (components + hfrep + export) at several resolutions over
    [-1.2, 1.2]^3, each in a fresh subprocess. The child reports stage starts (the runner's
    ``progress`` callback) on stdout; this process samples the child's RSS with psutil every
@@ -172,10 +173,10 @@ def batch_table(rows: list[Row]) -> str:
 # --- 2. cost of bricking ------------------------------------------------------------------------
 
 
-def read_frep(path: Path) -> Any:
+def read_frep(path: Path, name: str = "frep") -> Any:
     from pipeline.grid import vdb
 
-    return vdb.read(str(path), "frep")
+    return vdb.read(str(path), name)
 
 
 def compare_grids(a: Any, b: Any) -> dict:
@@ -210,15 +211,16 @@ def compare_grids(a: Any, b: Any) -> dict:
 
 def brick_cost(folder: Path, sizes: tuple[int, ...] = (256, 512), bricks: tuple[int, ...] = (64, 128, 256),
                workers: int = 2) -> list[Row]:
-    """Rows: n, bricks (None = unsplit), executor, brick count, voxelise s, total s, grid check."""
-    stages = "stages:\n  - voxelise: {band: 3}\n  - export: {vdb: true, report: false}\n"
+    """Rows: n, bricks (None = unsplit), executor, brick count, seconds per stage, total s, checks."""
+    stages = ("stages:\n  - voxelise: {band: 3}\n  - components: {}\n"
+              "  - hfrep: {quality: false, density: false}\n  - export: {vdb: true, report: false}\n")
     pool = LocalExecutor(workers)
     rows: list[Row] = []
     try:
         warm = demo_model_config(folder, "brickwarm", 32, 16, stages)
         execute(load_jobs(warm)[0], folder / "out_bricks", True, pool)  # start the workers' imports
         for n in sizes:
-            ref = None
+            ref = ref_surface = None
             runs: list[tuple[int | None, str, Executor]] = [(None, "inline", Executor())]
             runs += [(b, name, ex) for b in bricks if b < n
                      for name, ex in (("inline", Executor()), (f"local pool, {workers} workers", pool))]
@@ -231,31 +233,42 @@ def brick_cost(folder: Path, sizes: tuple[int, ...] = (256, 512), bricks: tuple[
                 if res["status"] != "ok":
                     raise RuntimeError(f"{name}: {res['status']}: {res['message']}")
                 manifest = json.loads((folder / "out_bricks" / name / "manifest.json").read_text())
+                secs = {f"{s['name']}_s": s["seconds"] for s in manifest["stages"]}
                 vox = next(s for s in manifest["stages"] if s["name"] == "voxelise")
+                hf = next(s for s in manifest["stages"] if s["name"] == "hfrep")
                 grid = read_frep(folder / "out_bricks" / name / f"{name}.vdb")
+                surface = read_frep(folder / "out_bricks" / name / f"{name}.vdb", "surface")
                 if ref is None:
-                    ref = grid
+                    ref, ref_surface = grid, surface
                 check = compare_grids(ref, grid)
+                surf = compare_grids(ref_surface, surface)
                 rows.append({"n": n, "brick": b, "executor": ex_name, "bricks": vox["stats"].get("bricks", 1),
-                             "voxelise_s": vox["seconds"], "total_s": total, **check})
+                             **secs, "total_s": total, **check, "components": manifest["components"]["count"],
+                             "hfrep_rounds": hf["stats"].get("rounds", 0),
+                             "surface_active_equal": surf["active_a"] == surf["active_b"],
+                             "surface_max_diff_vox": surf["max_abs_diff_band"] / job.domain.voxel_size})
     finally:
         pool.close()
     for r in rows:
         base = next(o for o in rows if o["n"] == r["n"] and o["brick"] is None)
-        r["voxelise_ratio"] = r["voxelise_s"] / base["voxelise_s"]
+        for stage in ("voxelise", "components", "hfrep"):
+            r[f"{stage}_ratio"] = r[f"{stage}_s"] / base[f"{stage}_s"]
     return rows
 
 
 def brick_table(rows: list[Row]) -> str:
-    out = ["| n^3 | brick | executor | bricks | voxelise s | vs unsplit | total s | active voxels | leaves |"
-           " max abs diff: band values / all values | background diff | identical |",
+    out = ["| n^3 | brick | executor | bricks | voxelise s (vs unsplit) | components s (vs unsplit) |"
+           " hfrep s (vs unsplit, rounds) | total s | frep active voxels | frep identical |"
+           " components | surface: same active voxels, max diff (voxels) |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         b = "unsplit" if r["brick"] is None else str(r["brick"])
-        out.append(f"| {r['n']} | {b} | {r['executor']} | {r['bricks']} | {r['voxelise_s']:.2f} |"
-                   f" {r['voxelise_ratio']:.2f}x | {r['total_s']:.2f} | {r['active_b']:,} | {r['leaves_b']:,} |"
-                   f" {r['max_abs_diff_band']:.3g} / {r['max_abs_diff']:.3g} | {r['background_diff']:.3g} |"
-                   f" {'yes' if r['identical'] else 'NO'} |")
+        out.append(f"| {r['n']} | {b} | {r['executor']} | {r['bricks']} |"
+                   f" {r['voxelise_s']:.2f} ({r['voxelise_ratio']:.2f}x) |"
+                   f" {r['components_s']:.2f} ({r['components_ratio']:.2f}x) |"
+                   f" {r['hfrep_s']:.2f} ({r['hfrep_ratio']:.2f}x, {r['hfrep_rounds']}) | {r['total_s']:.2f} |"
+                   f" {r['active_b']:,} | {'yes' if r['identical'] else 'NO'} | {r['components']} |"
+                   f" {'yes' if r['surface_active_equal'] else 'NO'}, {r['surface_max_diff_vox']:.2g} |")
     return "\n".join(out)
 
 
@@ -411,7 +424,7 @@ def sections(args: argparse.Namespace, folder: Path, emit: Callable[[str], None]
         emit(batch_table(results["batch"]) + "\n")
     if every or args.bricks:
         sizes, bricks = ((64,), (16, 32)) if q else (tuple(args.brick_n), (64, 128, 256))
-        emit("## Cost of bricking: demo model, voxelise (band 3) + export vdb\n")
+        emit("## Cost of bricking: demo model, voxelise (band 3) + components + hfrep + export vdb\n")
         results["bricks"] = brick_cost(folder, sizes, bricks)
         emit(brick_table(results["bricks"]) + "\n")
     if every or args.e2e:

@@ -64,6 +64,9 @@ def test_bricked_equals_unsplit(measured: dict) -> None:
         assert r["active_a"] == r["active_b"] > 0 and r["leaves_a"] == r["leaves_b"]
         assert r["max_abs_diff_band"] == r["max_abs_diff"] == r["background_diff"] == 0.0
         assert r["identical"]
+        assert r["components"] == rows[0]["components"] == 2  # the demo's two pieces
+        assert r["surface_active_equal"] and r["surface_max_diff_vox"] < 1e-3
+    assert rows[1]["hfrep_rounds"] >= 2 and rows[2]["hfrep_rounds"] == rows[1]["hfrep_rounds"]
     cells = _table_rows(scale.brick_table(rows))
     assert [c[1] for c in cells] == ["unsplit", "32", "32"]
 

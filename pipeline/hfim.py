@@ -13,8 +13,9 @@ tree itself and the levels are solved one after the other, each from the finer o
 * level 2: one node at the centre of every 128^3-voxel cell (spacing 128 h): the child
   size of OpenVDB's upper internal node, so a level-2 cell is written as ONE tile there.
 
-On level l a node whose cell the finer level solved completely is frozen at the finer value
-at the node (trilinear: the mean of the 8 finer samples around the cell centre); the other
+On level 1 a node whose leaf the fine level solved completely is frozen at the fine value at
+the node (trilinear: the mean of the 8 voxels around the leaf centre); on level 2 a node is
+frozen where the trilinear value of level 1 is defined (its 8 surrounding nodes solved); the other
 nodes are solved by a node FIM (active list, Jeong & Whitaker 2008) with the Godunov update
 :func:`pipeline.fim.upwind_update` at spacing s_l. Level 1 stops at ``coarse_distance_vox``
 (as the fine level stops at its reach); the last level solves the rest of the domain box.
@@ -35,7 +36,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
-from pipeline.eikonal import EikonalResult, solve_distance
+from pipeline.eikonal import SECOND_ORDER_VISITS, EikonalResult, solve_distance
 from pipeline.fim import EXCLUDED, FREE, FROZEN, upwind_update
 from pipeline.grid import LEAF, linear_transform, vdb, write_blocks
 
@@ -54,6 +55,7 @@ class CoarseLevel:
     values: np.ndarray
     frozen: np.ndarray
     limit: float
+    inside: np.ndarray | None = None
 
     @property
     def solved(self) -> np.ndarray:
@@ -89,12 +91,15 @@ class HierarchicalResult:
 
 
 @njit(cache=True)
-def node_fim(d, state, spacing, limit, tol):
+def node_fim(d, state, inside, spacing, limit, tol, order2, max_visits):
     """Node FIM on a dense lattice (Jeong & Whitaker 2008, Alg. 1, one node per list item).
 
-    ``d`` (A,B,C) distance in voxel units (inf = unknown), ``state`` FREE/FROZEN/EXCLUDED;
-    frozen nodes seed the list through their free neighbours. Godunov update at ``spacing``
-    voxels; a value above ``limit`` is never accepted. Returns the number of updates."""
+    ``d`` (A,B,C) distance in voxel units (inf = unknown), ``state`` FREE/FROZEN/EXCLUDED,
+    ``inside`` the side of the surface of every node. First order (``order2`` False): the
+    list starts with the free neighbours of frozen nodes and only decreases are accepted (the
+    monotone Godunov scheme, from above). Second order: every solved free node starts on the
+    list and changes in either direction are accepted, at most ``max_visits`` list visits.
+    A value above ``limit`` is never accepted. Returns (updates, visits)."""
     na, nb, nc = d.shape
     n = na * nb * nc
     queue = np.empty(n + 1, dtype=np.int64)
@@ -103,79 +108,92 @@ def node_fim(d, state, spacing, limit, tol):
     tail = 0
     bs = np.empty(3)
     cs = np.empty(3)
-    for p in range(n):  # free neighbours of frozen nodes start the list
+    for p in range(n):
         a, r = divmod(p, nb * nc)
         b, c = divmod(r, nc)
         if state[a, b, c] != FREE:
             continue
-        near = False
-        for ax in range(3):
-            for sgn in (-1, 1):
-                x, y, z = a, b, c
-                if ax == 0:
-                    x += sgn
-                elif ax == 1:
-                    y += sgn
-                else:
-                    z += sgn
+        start = order2 and d[a, b, c] < np.inf
+        if not order2:  # free neighbours of frozen nodes start the first-order list
+            for ax in range(6):
+                x, y, z = _nb(a, b, c, ax, 1)
                 if 0 <= x < na and 0 <= y < nb and 0 <= z < nc and state[x, y, z] == FROZEN:
-                    near = True
-        if near:
+                    start = True
+        if start:
             on_list[p] = True
             queue[tail] = p
             tail += 1
     updates = 0
-    while head != tail:
+    visits = 0
+    while head != tail and visits < max_visits:
+        visits += 1
         p = queue[head]
         head = (head + 1) % (n + 1)
         on_list[p] = False
         a, r = divmod(p, nb * nc)
         b, c = divmod(r, nc)
-        u = _node_update(d, state, a, b, c, spacing, bs, cs)
-        if u > limit or not u < d[a, b, c] - tol:
+        u = _node_update(d, state, inside, a, b, c, spacing, bs, cs, order2)
+        if u > limit:
+            continue
+        if order2:
+            if not abs(u - d[a, b, c]) > tol:
+                continue
+        elif not u < d[a, b, c] - tol:
             continue
         d[a, b, c] = u
         updates += 1
-        for ax in range(3):  # neighbours that may improve go (back) on the list
-            for sgn in (-1, 1):
-                x, y, z = a, b, c
-                if ax == 0:
-                    x += sgn
-                elif ax == 1:
-                    y += sgn
-                else:
-                    z += sgn
-                if not (0 <= x < na and 0 <= y < nb and 0 <= z < nc) or state[x, y, z] != FREE:
-                    continue
-                q = (x * nb + y) * nc + z
-                if not on_list[q] and d[x, y, z] > u:
-                    on_list[q] = True
-                    queue[tail] = q
-                    tail = (tail + 1) % (n + 1)
-    return updates
+        for ax in range(6):  # neighbours that may change go (back) on the list
+            x, y, z = _nb(a, b, c, ax, 1)
+            if not (0 <= x < na and 0 <= y < nb and 0 <= z < nc) or state[x, y, z] != FREE:
+                continue
+            q = (x * nb + y) * nc + z
+            if not on_list[q] and (order2 or d[x, y, z] > u):
+                on_list[q] = True
+                queue[tail] = q
+                tail = (tail + 1) % (n + 1)
+    return updates, visits
 
 
 @njit(cache=True, inline="always")
-def _node_update(d, state, a, b, c, spacing, bs, cs):
-    """Godunov update of node (a, b, c) from its axis neighbours, voxel units."""
+def _nb(a, b, c, f, step):
+    """Node ``step`` steps from (a, b, c) in face direction f (-x, +x, -y, +y, -z, +z)."""
+    sgn = step if f & 1 else -step
+    if f < 2:
+        return a + sgn, b, c
+    if f < 4:
+        return a, b + sgn, c
+    return a, b, c + sgn
+
+
+@njit(cache=True, inline="always")
+def _node_update(d, state, inside, a, b, c, spacing, bs, cs, order2):
+    """Godunov update of node (a, b, c), voxel units: per axis the smaller neighbour; second
+    order (Sethian 1999, section 4.3) where the next node on that side is known and not larger,
+    with the value across the surface negated (the signed distance is smooth there)."""
     na, nb, nc = d.shape
     m = 0
+    me = inside[a, b, c]
     for ax in range(3):
         best = np.inf
-        for sgn in (-1, 1):
-            x, y, z = a, b, c
-            if ax == 0:
-                x += sgn
-            elif ax == 1:
-                y += sgn
-            else:
-                z += sgn
+        side = 0
+        for f in (2 * ax, 2 * ax + 1):
+            x, y, z = _nb(a, b, c, f, 1)
+            inb = 0 <= x < na and 0 <= y < nb and 0 <= z < nc
+            if inb and state[x, y, z] != EXCLUDED and d[x, y, z] < best:
+                best = d[x, y, z]
+                side = f
+        if best == np.inf:
+            continue
+        bs[m] = best / spacing
+        cs[m] = 1.0
+        if order2:
+            x, y, z = _nb(a, b, c, side, 2)
             if 0 <= x < na and 0 <= y < nb and 0 <= z < nc and state[x, y, z] != EXCLUDED:
-                best = min(best, d[x, y, z])
-        if best < np.inf:
-            bs[m] = best / spacing
-            cs[m] = 1.0
-            m += 1
+                a2 = d[x, y, z] if inside[x, y, z] == me else -d[x, y, z]
+                if a2 <= best:
+                    bs[m] = (4.0 * best - a2) / 3.0 / spacing
+                    cs[m] = 1.5
+        m += 1
     if m == 0:
         return np.inf
     return upwind_update(bs, cs, m) * spacing
@@ -187,7 +205,7 @@ def _lattice(lo: np.ndarray, hi: np.ndarray, cell: int) -> tuple[np.ndarray, tup
     return a.astype(np.int64), tuple(int(x) for x in b - a + 1)
 
 
-def _fine_nodes(fine: EikonalResult, lat_lo: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
+def _fine_nodes(fine: EikonalResult, lat_lo: np.ndarray, shape):
     """Level-1 (leaf) node values from the fine solve: mean of the 8 voxels around each leaf
     centre (the trilinear value there); frozen where the whole leaf is solved."""
     dist = fine.distance
@@ -201,32 +219,26 @@ def _fine_nodes(fine: EikonalResult, lat_lo: np.ndarray, shape) -> tuple[np.ndar
     idx = tuple(p[full].T)
     vals[idx] = centre[full]
     frozen[idx] = True
-    return vals, frozen
+    inside = np.zeros(shape, bool)
+    inside[tuple(p[ok].T)] = fine.inside[ok][:, 3:5, 3:5, 3:5].reshape(int(ok.sum()), -1).mean(axis=1) > 0.5
+    return vals, frozen, inside
 
 
-def _coarser_nodes(level: CoarseLevel, cell: int, lat_lo: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
-    """Nodes of the level with cells ``cell`` frozen from ``level`` where it solved the whole cell."""
-    r = cell // level.cell
+def _coarser_nodes(level: CoarseLevel, cell: int, lat_lo: np.ndarray, shape):
+    """Nodes of the level with cells ``cell``, frozen at the trilinear value of the finer
+    ``level`` wherever that is defined (the 8 finer nodes around the node are solved; the
+    node position is clamped to the finer lattice for cells that stick out of the domain)."""
     vals = np.full(shape, np.inf)
     frozen = np.zeros(shape, bool)
-    off = lat_lo * r - level.lat_lo  # finer lattice offset of coarse cell 0
-    pad_lo = np.maximum(off, 0) - off
-    src = level.values[max(off[0], 0):, max(off[1], 0):, max(off[2], 0):]
-    full = np.full(tuple(np.array(shape) * r), np.nan)
-    n = np.minimum(np.array(src.shape), np.array(full.shape) - pad_lo)
-    full[pad_lo[0]:pad_lo[0] + n[0], pad_lo[1]:pad_lo[1] + n[1], pad_lo[2]:pad_lo[2] + n[2]] = \
-        src[:n[0], :n[1], :n[2]]
-    blocks = full.reshape(shape[0], r, shape[1], r, shape[2], r).transpose(0, 2, 4, 1, 3, 5)
-    # a cell is solved by the finer level when every finer node in it (inside the domain) is
-    known = np.isnan(blocks) | np.isfinite(blocks)
-    whole = known.reshape(*shape, -1).all(axis=-1) & np.isfinite(blocks).reshape(*shape, -1).any(axis=-1)
-    # node value: the finer level's trilinear value at the node (clamped to its lattice)
     nodes = CoarseLevel(cell, lat_lo, vals, frozen, np.inf).node_index().reshape(-1, 3)
     centre = level.sample(nodes).reshape(shape)
-    ok = whole & np.isfinite(centre)
+    ok = np.isfinite(centre)
     vals[ok] = centre[ok]
     frozen[ok] = True
-    return vals, frozen
+    near = np.floor_divide(nodes, level.cell).astype(np.int64) - level.lat_lo  # finer cell of each node
+    near = np.clip(near, 0, np.array(level.values.shape) - 1)
+    inside = level.inside[tuple(near.T)].reshape(shape)
+    return vals, frozen, inside
 
 
 def hierarchical_distance(
@@ -255,13 +267,18 @@ def hierarchical_distance(
     for n, cell in enumerate(levels):
         lat_lo, shape = _lattice(lo, hi, cell)
         if n == 0:
-            vals, frozen = _fine_nodes(fine, lat_lo, shape)
+            vals, frozen, inside = _fine_nodes(fine, lat_lo, shape)
         else:
-            vals, frozen = _coarser_nodes(out[-1], cell, lat_lo, shape)
+            vals, frozen, inside = _coarser_nodes(out[-1], cell, lat_lo, shape)
         limit = np.inf if n == len(levels) - 1 else float(coarse_distance_vox)
         state = np.where(frozen, FROZEN, FREE).astype(np.int8)
-        updates.append(int(node_fim(vals, state, float(cell), limit, tol * cell)))
-        out.append(CoarseLevel(cell, lat_lo, vals, frozen, limit))
+        up, _ = node_fim(vals, state, inside, float(cell), limit, tol * cell, False, 1 << 62)
+        if order == 2:  # second order from the first-order fixed point, as the fine solve
+            up2, _ = node_fim(vals, state, inside, float(cell), limit, tol * cell, True,
+                              SECOND_ORDER_VISITS * max(int(np.isfinite(vals).sum()), 1))
+            up += up2
+        updates.append(int(up))
+        out.append(CoarseLevel(cell, lat_lo, vals, frozen, limit, inside))
     t2 = time.perf_counter()
     stats = {
         "fine": fine.stats,

@@ -1,0 +1,152 @@
+"""Hierarchical FIM (pipeline.hfim) on a small sphere and box in the domain [-1, 1]^3:
+coarse nodes vs the analytic distance and vs the flat whole-domain solve, the written grid
+(tiles for far space, read back from a .vdb file) and its storage growth with resolution."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.eikonal import solve_distance
+from pipeline.grid import LEAF, vdb
+from pipeline.hfim import hierarchical_distance, hierarchical_grid, stored_values
+from tests.test_eikonal import C, band_grid
+
+HALF = np.array([0.2, 0.15, 0.18])
+
+
+def sphere(p: np.ndarray) -> np.ndarray:
+    return 0.25 - np.linalg.norm(p - C, axis=-1)
+
+
+def box(p: np.ndarray) -> np.ndarray:
+    q = np.abs(p - C) - HALF
+    return -(np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(-1), 0))
+
+
+SHAPES = {"sphere": sphere, "box": box}
+_CACHE: dict = {}
+
+
+def hfim(name: str, n: int, **kw):
+    key = (name, n, tuple(sorted(kw.items())))
+    if key not in _CACHE:
+        frep, dom = band_grid(SHAPES[name], n)
+        _CACHE[key] = (frep, dom, hierarchical_distance(frep, dom, **kw))
+    return _CACHE[key]
+
+
+def flat(name: str, n: int):
+    key = ("flat", name, n)
+    if key not in _CACHE:
+        frep, dom = band_grid(SHAPES[name], n)
+        _CACHE[key] = solve_distance(frep, None, dom)
+    return _CACHE[key]
+
+
+def coarse_errors(name: str, n: int, level: int = 0, **kw) -> tuple[float, float, int]:
+    """(max, mean) error in world units of the nodes solved on the level (not frozen), count."""
+    _, _, res = hfim(name, n, **kw)
+    lv = res.levels[level]
+    h = 2.0 / n
+    m = lv.solved & ~lv.frozen
+    err = np.abs(lv.values[m] * h + SHAPES[name](lv.node_index()[m] * h))
+    return float(err.max()), float(err.mean()), int(m.sum())
+
+
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_coarse_nodes_match_the_analytic_distance(name: str) -> None:
+    rows = [(n, *coarse_errors(name, n)) for n in (64, 128)]
+    for n, emax, emean, count in rows:
+        s = LEAF * 2.0 / n  # coarse spacing, world units
+        assert count > 50
+        assert emax <= 0.5 * s and emean <= 0.15 * s, (n, emax / s, emean / s)
+    assert rows[1][1] < rows[0][1] and rows[1][2] < rows[0][2]  # finer voxels, finer coarse cells
+
+
+def test_second_level_continues_the_first() -> None:
+    """Level 2 (cells of 32 voxels here, to fit a small domain) is frozen from level 1 where
+    level 1 reached and solves the rest; its error stays within one of its cells."""
+    kw = {"levels": (8, 32), "coarse_distance_vox": 40.0}
+    _, _, res = hfim("sphere", 128, **kw)
+    l1, l2 = res.levels
+    assert np.isfinite(l1.values).sum() < l1.values.size  # level 1 stopped at its reach
+    assert l2.frozen.any() and (l2.solved & ~l2.frozen).any()
+    assert l2.solved.all()
+    emax, emean, _ = coarse_errors("sphere", 128, level=1, **kw)
+    assert emax <= 32 * 2.0 / 128 and emean <= 0.3 * 32 * 2.0 / 128
+
+
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_coarse_field_agrees_with_the_flat_solve(name: str) -> None:
+    n = 64
+    h = 2.0 / n
+    _, _, res = hfim(name, n)
+    ref = flat(name, n).distance
+    lv = res.levels[0]
+    m = lv.solved & ~lv.frozen
+    origins = (lv.lat_lo + np.argwhere(m)) * LEAF
+    rows = ref.block_index(origins)
+    assert (rows >= 0).all() and ref.active[rows].all()
+    at_node = ref.values[rows][:, 3:5, 3:5, 3:5].reshape(len(rows), -1).mean(axis=1)  # trilinear at centre
+    diff = np.abs(lv.values[m] * h - at_node)
+    assert diff.max() <= LEAF * h and diff.mean() <= 0.3 * LEAF * h, (diff.max() / h, diff.mean() / h)
+
+
+def test_written_grid_has_tiles_for_far_space(tmp_path) -> None:
+    n = 128
+    h = 2.0 / n
+    _, dom, res = hfim("sphere", n)
+    grid = hierarchical_grid(res, "distance")
+    path = tmp_path / "hfim.vdb"
+    vdb.write(str(path), grids=[grid])
+    back = vdb.read(str(path), "distance")
+    leaves_flat = (n // LEAF) ** 3  # the flat whole-domain solve keeps every leaf of the domain
+    assert back.leafCount() == res.stats["written"]["leaves"] < leaves_flat / 4
+    domain_voxels = n**3
+    assert back.activeVoxelCount() >= domain_voxels  # every voxel of the domain has a value
+    assert back.activeVoxelCount() - back.activeLeafVoxelCount() > domain_voxels / 2  # mostly tiles
+    # far points: the tile value (the distance at the cell centre) within a half cell diagonal
+    # plus one coarse spacing of the analytic distance
+    rng = np.random.default_rng(1)
+    ijk = rng.integers(dom[0], dom[1] + 1, size=(4000, 3))
+    exact = -sphere(ijk * h)
+    far = ijk[exact > 24 * h][:300]
+    acc = back.getConstAccessor()
+    got = np.array([acc.getValue(tuple(int(x) for x in p)) for p in far])
+    err = np.abs(got + sphere(far * h))
+    s = LEAF * h
+    assert len(far) == 300 and err.max() <= (np.sqrt(3) / 2 + 1) * s and err.mean() <= 0.5 * s
+    # near and inside: the fine solve (signed, negative inside)
+    near = ijk[np.abs(sphere(ijk * h)) < 10 * h][:100]
+    got = np.array([acc.getValue(tuple(int(x) for x in p)) for p in near])
+    assert np.abs(got + sphere(near * h)).max() < 0.1 * h * 10
+
+
+def test_tiles_are_tiles_not_leaves() -> None:
+    _, _, res = hfim("sphere", 64)
+    grid = hierarchical_grid(res)
+    st = stored_values(grid, count_tiles=True)
+    assert st["tiles_by_voxels"] == {LEAF**3: res.stats["written"]["leaf_tiles"]}
+    assert st["stored_values"] == res.stats["written"]["stored_values"]
+    kw = {"levels": (8, 32), "coarse_distance_vox": 40.0}
+    _, _, res2 = hfim("sphere", 128, **kw)
+    g2 = hierarchical_grid(res2)
+    assert res2.stats["written"]["big_tiles"] > 0
+    # a 32^3 cell is 64 leaf-sized tiles: no leaf is made for it
+    assert g2.leafCount() == res2.stats["written"]["leaves"]
+
+
+def test_storage_grows_like_area() -> None:
+    """Stored values (leaves * 512 + tiles) per resolution doubling: the flat whole-domain
+    solve grows like the volume (x8), the hierarchical grid like the area (the fine leaves of
+    the shell of constant width in voxels; the sphere's interior is small here)."""
+    stored, flat_stored = [], []
+    for n in (64, 128):
+        _, _, res = hfim("sphere", n)
+        hierarchical_grid(res)
+        stored.append(res.stats["written"]["stored_values"])
+        flat_stored.append(len(flat("sphere", n).distance.origins) * LEAF**3)
+    assert stored[1] / stored[0] < 5
+    assert flat_stored[1] / flat_stored[0] > 7
+    assert stored[1] < flat_stored[1] / 4

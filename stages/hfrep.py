@@ -40,7 +40,8 @@ class Attribute(StageParams):
 
 
 class Params(StageParams):
-    solver: Literal["fim"] = "fim"
+    solver: Literal["fim", "hfim"] = Field(
+        default="fim", description="'hfim': 'surface' covers the domain box, far space as coarse tiles (docs/hfim.md)")
     order: Literal[1, 2] = Field(default=2, description="upwind scheme: 1 first-order Godunov, 2 second order")
     smoothing: Literal["tricubic"] = "tricubic"
     step: Literal["sigmoid", "tanh", "rational"] = Field(default="sigmoid", description="C1 step of eq. 21")
@@ -79,8 +80,15 @@ def run(ctx, p: Params) -> dict:
     h, band = dom.voxel_size, float(ctx.data["band"])
     maxd = 10 * h if p.max_distance is None else p.max_distance
     # with bricks: the FIM runs per brick on the workers, continued across brick faces
-    res = solve_distance(frep, maxd, (dom.index_min, dom.index_max), ctx.data["inside_boxes"], order=p.order,
-                         brick=ctx.job.bricks, map_fn=ctx.map)
+    if p.solver == "hfim":  # fine solve out to max_distance (default 16 voxels), coarse cells beyond
+        from pipeline.hfim import hierarchical_distance
+        reach = 16.0 if p.max_distance in (None, "domain") else p.max_distance / h
+        hres = hierarchical_distance(frep, (dom.index_min, dom.index_max), ctx.data["inside_boxes"],
+                                     fine_distance_vox=reach, order=p.order)
+        res = hres.fine
+    else:
+        res = solve_distance(frep, maxd, (dom.index_min, dom.index_max), ctx.data["inside_boxes"], order=p.order,
+                             brick=ctx.job.bricks, map_fn=ctx.map)
     meta = ctx.grid_metadata("hfrep", p)
     hf = hfrep_blocks(frep, res, p.step, p.slope)
     for name in ("surface", "hfrep", "density"):  # keep these first in the file, attributes after
@@ -100,7 +108,12 @@ def run(ctx, p: Params) -> dict:
         ctx.grids["density"].updateMetadata(meta)
     else:
         del ctx.grids["density"]
-    surface = surface_grid(res, band, full=p.surface == "full")
+    if p.solver == "hfim":
+        from pipeline.hfim import hierarchical_grid
+        surface = hierarchical_grid(hres, "surface")
+        stats["hfim"] = {k: v for k, v in hres.stats.items() if k != "fine"}
+    else:
+        surface = surface_grid(res, band, full=p.surface == "full")
     surface.updateMetadata(meta)
     ctx.grids["surface"], ctx.grids["hfrep"] = surface, hgrid
     return stats

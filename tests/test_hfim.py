@@ -150,3 +150,34 @@ def test_storage_grows_like_area() -> None:
     assert stored[1] / stored[0] < 5
     assert flat_stored[1] / flat_stored[0] > 7
     assert stored[1] < flat_stored[1] / 4
+
+
+STAGE_CONFIG = """\
+name: small
+domain: {bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 64}
+model:
+  sphere: {center: [0.013, -0.021, 0.007], radius: 0.25}
+stages:
+  - voxelise: {band: 3}
+  - hfrep: {solver: hfim, quality: false, density: false}
+  - export: {vdb: true}
+"""
+
+
+def test_hfrep_stage_with_hfim(tmp_path) -> None:
+    """``solver: hfim``: the ``surface`` grid covers the domain box, far space as tiles."""
+    from pipeline.cli import main
+
+    cfg = tmp_path / "small.yaml"
+    cfg.write_text(STAGE_CONFIG)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+    grids, _ = vdb.readAll(str(tmp_path / "out" / "small" / "small.vdb"))
+    surface = {g.name: g for g in grids}["surface"]
+    h = 2.0 / 64
+    assert surface.leafCount() < 0.8 * 9**3  # the domain [-32, 32]^3 voxels meets 9^3 leaves
+    assert surface.activeVoxelCount() - surface.activeLeafVoxelCount() > 0  # far space as tiles
+    assert surface.activeVoxelCount() >= 65**3
+    acc = surface.getConstAccessor()
+    for ijk in [(-30, -30, -30), (30, 28, -29), (0, 0, 0), (20, 0, 0)]:
+        exact = -sphere(np.array(ijk) * h)
+        assert abs(acc.getValue(ijk) - exact) <= (np.sqrt(3) / 2 + 1) * LEAF * h

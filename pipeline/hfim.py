@@ -17,8 +17,10 @@ On level 1 a node whose leaf the fine level solved completely is frozen at the f
 the node (trilinear: the mean of the 8 voxels around the leaf centre); on level 2 a node is
 frozen where the trilinear value of level 1 is defined (its 8 surrounding nodes solved); the other
 nodes are solved by a node FIM (active list, Jeong & Whitaker 2008) with the Godunov update
-:func:`pipeline.fim.upwind_update` at spacing s_l. Level 1 stops at ``coarse_distance_vox``
-(as the fine level stops at its reach); the last level solves the rest of the domain box.
+:func:`pipeline.fim.upwind_update` at spacing s_l (then the second-order pass, as the fine
+solve). Level 1 first runs out to ``coarse_distance_vox`` (as the fine level stops at its
+reach); every level-2 cell it reached is then solved completely on level 1, and level 2 keeps
+only the cells wholly beyond the reach, each written as one 128^3 tile.
 Finer entries left unsolved (a leaf the fine front only partly reached, a level-1 node past
 its reach) are filled by trilinear interpolation of the next level.
 
@@ -205,6 +207,14 @@ def _lattice(lo: np.ndarray, hi: np.ndarray, cell: int) -> tuple[np.ndarray, tup
     return a.astype(np.int64), tuple(int(x) for x in b - a + 1)
 
 
+def _parents(lat_lo: np.ndarray, shape, cell: int, coarser: int) -> np.ndarray:
+    """(A,B,C,3) index of the coarser cell holding every node, relative to the coarser lattice."""
+    axes = [lat_lo[a] + np.arange(shape[a]) for a in range(3)]
+    idx = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    r = coarser // cell
+    return idx // r - np.floor_divide(lat_lo, r)
+
+
 def _fine_nodes(fine: EikonalResult, lat_lo: np.ndarray, shape):
     """Level-1 (leaf) node values from the fine solve: mean of the 8 voxels around each leaf
     centre (the trilinear value there); frozen where the whole leaf is solved."""
@@ -272,9 +282,20 @@ def hierarchical_distance(
             vals, frozen, inside = _coarser_nodes(out[-1], cell, lat_lo, shape)
         limit = np.inf if n == len(levels) - 1 else float(coarse_distance_vox)
         state = np.where(frozen, FROZEN, FREE).astype(np.int8)
+        seeded = vals.copy()
         up, _ = node_fim(vals, state, inside, float(cell), limit, tol * cell, False, 1 << 62)
+        if n < len(levels) - 1:
+            # every next-level cell this level reached within its limit is solved completely
+            # here; the next level keeps only the cells wholly beyond the reach
+            parent = _parents(lat_lo, shape, cell, levels[n + 1])
+            reached = np.zeros(tuple(parent.max(axis=(0, 1, 2)) + 1), bool)
+            reached[tuple(parent[np.isfinite(vals)].T)] = True
+            state[~reached[tuple(np.moveaxis(parent, -1, 0))]] = EXCLUDED
+            vals[...] = seeded
+            up2, _ = node_fim(vals, state, inside, float(cell), np.inf, tol * cell, False, 1 << 62)
+            up += up2
         if order == 2:  # second order from the first-order fixed point, as the fine solve
-            up2, _ = node_fim(vals, state, inside, float(cell), limit, tol * cell, True,
+            up2, _ = node_fim(vals, state, inside, float(cell), np.inf, tol * cell, True,
                               SECOND_ORDER_VISITS * max(int(np.isfinite(vals).sum()), 1))
             up += up2
         updates.append(int(up))

@@ -23,7 +23,6 @@ import numpy as np
 from pipeline.fim import FROZEN, fim
 
 FACE_ROWS = np.array([4, 22, 10, 16, 12, 14])  # nbr27 rows of -x, +x, -y, +y, -z, +z
-MAX_ROUNDS = 10_000
 
 
 def brick_of_blocks(origins: np.ndarray, brick: int) -> np.ndarray:
@@ -67,13 +66,16 @@ class BrickedFIM:
 
     def solve(self, seeds: np.ndarray, limit: float, tol: float, max_sweeps: int, order2: bool,
               visits_per_block: int) -> dict:
-        """Run rounds from the global ``seeds`` until no brick has work. Counters for the manifest."""
+        """Run rounds from the global ``seeds`` until no brick has work, or until the block
+        visits of all rounds pass ``visits_per_block`` per block (then ``converged`` is
+        False: the bound of a non-monotone pass). Counters for the manifest."""
         pending = [set() for _ in range(self.n_bricks)]
         for s in seeds:
             pending[self.brick_of[s]].add(int(s))
         totals = {"rounds": 0, "brick_runs": 0, "block_visits": 0, "voxel_updates": 0, "sweeps": 0}
+        budget = visits_per_block * max(len(self.d), 1)
         converged = True
-        while any(pending) and totals["rounds"] < MAX_ROUNDS:
+        while any(pending) and converged and totals["block_visits"] < budget:
             work = [b for b in range(self.n_bricks) if pending[b]]
             tasks = [self._task(b, pending[b], limit, tol, max_sweeps, order2, visits_per_block) for b in work]
             pending = [set() for _ in range(self.n_bricks)]
@@ -89,6 +91,12 @@ class BrickedFIM:
             totals["brick_runs"] += len(work)
         totals["converged"] = converged and not any(pending)
         return totals
+
+    def pass_runner(self, limit: float, tol: float, max_sweeps: int):
+        """``run_pass(seeds, order2, visits_per_block)`` for :func:`pipeline.eikonal._solve`."""
+        def run(seeds, order2, visits_per_block):
+            return self.solve(seeds, limit, tol, max_sweeps, order2, visits_per_block)
+        return run
 
     def _task(self, b: int, seeds: set, limit, tol, max_sweeps, order2, visits_per_block) -> tuple:
         own, ghost = self.own[b], self.ghosts[b]

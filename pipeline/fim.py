@@ -80,19 +80,35 @@ def upwind_update(bs, cs, n):
 def _load_block(d, inside, nbr27, b, buf, sbuf):
     """Copy block b with two ghost layers on each face into the (12,12,12) buffers (distance
     and side of the surface; edges and corners are not read by the axis stencils)."""
-    for i in range(-2, 10):
-        for j in range(-2, 10):
-            for k in range(-2, 10):
-                out = (i < 0 or i > 7) + (j < 0 or j > 7) + (k < 0 or k > 7)
-                if out > 1:
-                    continue
-                n, li, lj, lk = locate(nbr27, b, i, j, k)
-                if n < 0:
-                    buf[i + 2, j + 2, k + 2] = np.inf
-                    sbuf[i + 2, j + 2, k + 2] = False
-                else:
-                    buf[i + 2, j + 2, k + 2] = d[n, li, lj, lk]
-                    sbuf[i + 2, j + 2, k + 2] = inside[n, li, lj, lk]
+    for i in range(8):
+        for j in range(8):
+            for k in range(8):
+                buf[i + 2, j + 2, k + 2] = d[b, i, j, k]
+                sbuf[i + 2, j + 2, k + 2] = inside[b, i, j, k]
+    for g in range(2):  # ghost layer g: buffer index 1-g below the block, 10+g above
+        lo, hi = 1 - g, 10 + g
+        src_lo, src_hi = 7 - g, g  # the neighbour's voxel layer that lies there
+        n0, n1 = nbr27[b, 4], nbr27[b, 22]
+        n2, n3 = nbr27[b, 10], nbr27[b, 16]
+        n4, n5 = nbr27[b, 12], nbr27[b, 14]
+        for u in range(8):
+            for v in range(8):
+                _ghost(d, inside, n0, src_lo, u, v, buf, sbuf, lo, u + 2, v + 2)
+                _ghost(d, inside, n1, src_hi, u, v, buf, sbuf, hi, u + 2, v + 2)
+                _ghost(d, inside, n2, u, src_lo, v, buf, sbuf, u + 2, lo, v + 2)
+                _ghost(d, inside, n3, u, src_hi, v, buf, sbuf, u + 2, hi, v + 2)
+                _ghost(d, inside, n4, u, v, src_lo, buf, sbuf, u + 2, v + 2, lo)
+                _ghost(d, inside, n5, u, v, src_hi, buf, sbuf, u + 2, v + 2, hi)
+
+
+@njit(cache=True, inline="always")
+def _ghost(d, inside, n, i, j, k, buf, sbuf, bi, bj, bk):
+    if n < 0:
+        buf[bi, bj, bk] = np.inf
+        sbuf[bi, bj, bk] = False
+    else:
+        buf[bi, bj, bk] = d[n, i, j, k]
+        sbuf[bi, bj, bk] = inside[n, i, j, k]
 
 
 @njit(cache=True, inline="always")

@@ -201,11 +201,12 @@ def test_sparse_block_set_grows_with_surface_not_volume() -> None:
     both = dense.distance.block_index(sparse.distance.origins)
     a = sparse.distance
     same = a.active
-    diff = np.abs(a.values[same] - dense.distance.values[both][same])
-    # the second-order pass is a non-monotone fixed-point iteration (tolerance 1e-6 voxel per
-    # update): a few voxels near the max_distance edge settle slightly differently
-    assert np.mean(diff <= 1e-6) >= 0.999
-    assert diff.max() <= 1e-3 * a.voxel_size
+    diff = np.abs(a.values[same] - dense.distance.values[both][same]) / a.voxel_size
+    inner = a.values[same] / a.voxel_size < 2.0  # more than a voxel inside the 3-voxel cut-off
+    # within the last voxel before the cut-off, a tangential neighbour beyond it is missing in
+    # the sparse run: the second-order update there may differ by a few thousandths of a voxel
+    assert np.mean(diff[inner] <= 1e-4) >= 0.9999 and diff[inner].max() < 1e-3
+    assert diff.max() < 1e-2
 
 
 @pytest.mark.parametrize("name", sorted(SHAPES))
@@ -291,3 +292,36 @@ def test_surface_level_set_grid() -> None:
     assert acc.getValue((1000, 0, 0)) == pytest.approx(band * h)
     stats = gradient_stats(signed_distance_blocks(res), lambda p: np.linalg.norm(p, axis=1) > 8 * h)
     assert 0.97 < stats["mean"] < 1.03 and stats["share_below_0_5"] == 0.0
+
+
+def test_second_order_fallback_path_gives_the_same_field(monkeypatch) -> None:
+    """If the second-order pass from the initial layer does not converge within its bound, the
+    free voxels are reset and first order then second order run: the same field."""
+    import pipeline.eikonal as eik
+
+    frep, dom = band_grid(torus, 64)
+    h = 2.0 / 64
+    direct = solve_distance(frep, 3 * h, dom)
+    assert direct.stats["scheme"] == "second order" and direct.stats["converged"]
+    real = eik._flat_pass
+
+    def flaky(*args):
+        run = real(*args)
+        calls = []
+
+        def first_fails(seeds, order2, visits):
+            calls.append(order2)
+            out = run(seeds, order2, 0 if len(calls) == 1 else visits)  # a zero budget: abandoned at once
+            return out
+        return first_fails
+
+    monkeypatch.setattr(eik, "_flat_pass", flaky)
+    robust = solve_distance(frep, 3 * h, dom)
+    assert robust.stats["scheme"].startswith("second order did not converge")
+    assert not robust.stats["abandoned"]["converged"] and robust.stats["converged"]
+    both = direct.distance.active & robust.distance.active
+    assert np.abs(direct.distance.values - robust.distance.values)[both].max() < 1e-3 * h
+    differ = direct.distance.active ^ robust.distance.active  # accepted or not at the cut-off
+    at = np.where(direct.distance.active, direct.distance.values, robust.distance.values)[differ] / h
+    print(f"\n{differ.sum()} voxels differ, at {at.min():.4f}..{at.max():.4f} voxels (cut-off 3)")
+    assert differ.sum() <= 1e-3 * both.sum() and np.all(np.abs(at - 3.0) < 0.05)

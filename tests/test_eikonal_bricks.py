@@ -32,7 +32,7 @@ def compare(a, b, limit_vox: float | None) -> float:
         at = np.where(a.distance.active, a.distance.values, b.distance.values)[differ] / H
         # a voxel whose value lands within the solver's error of the cut-off may be accepted
         # by one visiting order and not by the other
-        assert np.all(np.abs(at - limit_vox) < 1e-2), at
+        assert np.all(np.abs(at - limit_vox) < 0.05), at
         assert differ.sum() <= 1e-4 * a.distance.active.sum() + 2
     both = a.distance.active & b.distance.active
     return float(np.abs(a.distance.values - b.distance.values)[both].max() / H)
@@ -48,6 +48,7 @@ def test_bricked_solve_equals_the_unsplit_one(name: str, order: int) -> None:
             split = solve_distance(frep, None if limit is None else limit * H, dom, order=order, brick=brick)
             assert split.stats["bricks"] > 1
             assert split.stats["rounds"] >= 2  # information did cross brick faces
+            assert split.stats["converged"] and split.stats["scheme"] == whole.stats["scheme"]
             # the same fixed point up to the stopping tolerance (1e-6 voxel per update, met along
             # fronts tens of voxels long in a different order) and float32 storage; the
             # second-order pass is not monotone and settles within 1e-3 voxel
@@ -127,7 +128,7 @@ def test_hfrep_on_bricks_on_dask_matches_the_unsplit_run(tmp_path, cluster) -> N
     assert rw["status"] == rs["status"] == "ok", (rw, rs)
     ms = json.loads((tmp_path / "split" / "manifest.json").read_text())
     hstats = next(s["stats"] for s in ms["stages"] if s["name"] == "hfrep")
-    assert hstats["bricks"] >= 8 and hstats["rounds"] >= 2 and hstats["order2_converged"]
+    assert hstats["bricks"] >= 8 and hstats["rounds"] >= 2 and hstats["converged"]
     h = 2.0 / 64
     for grid in ("surface", "hfrep", "depth"):
         nw, aw, low = dense(tmp_path / "whole" / "whole.vdb", grid)

@@ -260,17 +260,21 @@ def hierarchical_distance(
     order: int = 2,
     levels: tuple[int, ...] = LEVEL_CELLS,
     tol: float = 1e-6,
+    brick: int | None = None,
+    map_fn=None,
 ) -> HierarchicalResult:
     """Unsigned distance to frep's zero set over the whole domain box on mixed-depth cells.
 
     ``fine_distance_vox``: reach (voxels) of the fine solve outside the object;
     ``coarse_distance_vox``: reach of every coarse level but the last (voxels), beyond which
-    the next level takes over; ``levels``: cell edges in voxels (default 8, 128).
+    the next level takes over; ``levels``: cell edges in voxels (default 8, 128). ``brick``,
+    ``map_fn``: the fine solve on bricks over an executor (:func:`solve_distance`).
     """
     t0 = time.perf_counter()
     lo, hi = (np.asarray(b, dtype=np.int64) for b in domain_index_bounds)
     h = float(frep.voxel_size)
-    fine = solve_distance(frep, fine_distance_vox * h, (lo, hi), inside_boxes, order=order)
+    fine = solve_distance(frep, fine_distance_vox * h, (lo, hi), inside_boxes, order=order, brick=brick,
+                          map_fn=map_fn)
     t1 = time.perf_counter()
     out: list[CoarseLevel] = []
     updates = []
@@ -385,14 +389,18 @@ def hierarchical_blocks(res: HierarchicalResult, signed: bool = True):
     return BlockGrid(h, bg, dist.origins, values, active)
 
 
-def hierarchical_grid(res: HierarchicalResult, name: str = "distance", signed: bool = True):
+def hierarchical_grid(res: HierarchicalResult, name: str = "distance", signed: bool = True,
+                      background: float | None = None):
     """ONE pyopenvdb FloatGrid: fine leaves near the object (and inside), leaf-sized tiles for
     level-1 cells, 128^3 tiles for level-2 cells (``grid.fill`` over whole nodes makes tiles).
-    World units; negative inside when ``signed`` (OpenVDB level-set convention)."""
+    World units; negative inside when ``signed`` (OpenVDB level-set convention).
+    ``background``: the grid's background (default: the largest distance stored); every voxel
+    of the domain box is active, so it only shows outside the domain."""
     blocks = hierarchical_blocks(res, signed)
     h = res.voxel_size
     origins, vals, big_origins, big_vals = _tile_plan(res)
-    bg = float(max(blocks.background, np.max(vals * h, initial=0.0), np.max(big_vals * h, initial=0.0)))
+    bg = float(max(blocks.background, np.max(vals * h, initial=0.0), np.max(big_vals * h, initial=0.0))) \
+        if background is None else float(background)
     grid = vdb.FloatGrid(bg)
     grid.name = name
     grid.transform = linear_transform(h)

@@ -79,16 +79,17 @@ def run(ctx, p: Params) -> dict:
     dom, frep = ctx.job.domain, ctx.blocks["frep"]
     h, band = dom.voxel_size, float(ctx.data["band"])
     maxd = 10 * h if p.max_distance is None else p.max_distance
-    # with bricks: the FIM runs per brick on the workers, continued across brick faces
+    # with bricks, the (fine) FIM runs per brick on the workers, continued across brick faces
+    bricks = {"brick": ctx.job.bricks, "map_fn": ctx.map}
     if p.solver == "hfim":  # fine solve out to max_distance (default 16 voxels), coarse cells beyond
         from pipeline.hfim import hierarchical_distance
         reach = 16.0 if p.max_distance in (None, "domain") else p.max_distance / h
         hres = hierarchical_distance(frep, (dom.index_min, dom.index_max), ctx.data["inside_boxes"],
-                                     fine_distance_vox=reach, order=p.order)
+                                     fine_distance_vox=reach, order=p.order, **bricks)
         res = hres.fine
     else:
         res = solve_distance(frep, maxd, (dom.index_min, dom.index_max), ctx.data["inside_boxes"], order=p.order,
-                             brick=ctx.job.bricks, map_fn=ctx.map)
+                             **bricks)
     meta = ctx.grid_metadata("hfrep", p)
     hf = hfrep_blocks(frep, res, p.step, p.slope)
     for name in ("surface", "hfrep", "density"):  # keep these first in the file, attributes after
@@ -110,7 +111,7 @@ def run(ctx, p: Params) -> dict:
         del ctx.grids["density"]
     if p.solver == "hfim":
         from pipeline.hfim import hierarchical_grid
-        surface = hierarchical_grid(hres, "surface")
+        surface = hierarchical_grid(hres, "surface", background=band * h)  # SPEC: background = band * h
         stats["hfim"] = {k: v for k, v in hres.stats.items() if k != "fine"}
     else:
         surface = surface_grid(res, band, full=p.surface == "full")

@@ -181,3 +181,6 @@ def test_hfrep_stage_with_hfim(tmp_path) -> None:
     for ijk in [(-30, -30, -30), (30, 28, -29), (0, 0, 0), (20, 0, 0)]:
         exact = -sphere(np.array(ijk) * h)
         assert abs(acc.getValue(ijk) - exact) <= (np.sqrt(3) / 2 + 1) * LEAF * h
+    band = 3.0
+    assert surface.background == pytest.approx(band * h)  # SPEC: surface background = band * voxel size
+    assert surface.gridClass == vdb.GridClass.LEVEL_SET

@@ -16,6 +16,7 @@ Every function returns a plain dict of Python numbers for ``manifest.json``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -71,65 +72,92 @@ HIST_MAX, HIST_BINS = 4.0, 40_000  # |grad| histogram: 1e-4 resolution for the p
 
 
 @njit(cache=True)
+def _load_padded(vals, act, nbr, b, buf, abuf):
+    """Block b and its six face layers (from the face neighbours) into (10,10,10) buffers."""
+    abuf[:] = False
+    for i in range(8):
+        for j in range(8):
+            for k in range(8):
+                buf[i + 1, j + 1, k + 1] = vals[b, i, j, k]
+                abuf[i + 1, j + 1, k + 1] = act[b, i, j, k]
+    for u in range(8):
+        for v in range(8):
+            n = nbr[b, 0]
+            if n >= 0:
+                buf[0, u + 1, v + 1], abuf[0, u + 1, v + 1] = vals[n, 7, u, v], act[n, 7, u, v]
+            n = nbr[b, 1]
+            if n >= 0:
+                buf[9, u + 1, v + 1], abuf[9, u + 1, v + 1] = vals[n, 0, u, v], act[n, 0, u, v]
+            n = nbr[b, 2]
+            if n >= 0:
+                buf[u + 1, 0, v + 1], abuf[u + 1, 0, v + 1] = vals[n, u, 7, v], act[n, u, 7, v]
+            n = nbr[b, 3]
+            if n >= 0:
+                buf[u + 1, 9, v + 1], abuf[u + 1, 9, v + 1] = vals[n, u, 0, v], act[n, u, 0, v]
+            n = nbr[b, 4]
+            if n >= 0:
+                buf[u + 1, v + 1, 0], abuf[u + 1, v + 1, 0] = vals[n, u, v, 7], act[n, u, v, 7]
+            n = nbr[b, 5]
+            if n >= 0:
+                buf[u + 1, v + 1, 9], abuf[u + 1, v + 1, 9] = vals[n, u, v, 0], act[n, u, v, 0]
+
+
+@njit(cache=True)
 def _gradient_hist(vals, act, nbr, h, hist):
     """Histogram of |central-difference gradient| over voxels whose 6 face neighbours are
     active (no per-voxel output: constant memory however large the grid). Returns (n, sum);
-    values beyond HIST_MAX land in the last bin. Interior voxels skip the neighbour lookup."""
+    values beyond HIST_MAX land in the last bin. Each block is read once into a buffer with
+    its face layers, so the voxel loop has no neighbour lookups."""
     n = 0
     total = 0.0
     nb = hist.shape[0]
     scale = nb / HIST_MAX
+    inv = 1.0 / (2.0 * h)
+    buf = np.zeros((10, 10, 10))
+    abuf = np.zeros((10, 10, 10), dtype=np.bool_)
     for b in range(vals.shape[0]):
-        for i in range(8):
-            for j in range(8):
-                for k in range(8):
-                    if not act[b, i, j, k]:
+        _load_padded(vals, act, nbr, b, buf, abuf)
+        for i in range(1, 9):
+            for j in range(1, 9):
+                for k in range(1, 9):
+                    if not (abuf[i, j, k] and abuf[i - 1, j, k] and abuf[i + 1, j, k] and abuf[i, j - 1, k]
+                            and abuf[i, j + 1, k] and abuf[i, j, k - 1] and abuf[i, j, k + 1]):
                         continue
-                    g2 = 0.0
-                    good = True
-                    for axis in range(3):
-                        c = i if axis == 0 else (j if axis == 1 else k)
-                        if 0 < c < 7:
-                            di, dj, dk = (1, 0, 0) if axis == 0 else ((0, 1, 0) if axis == 1 else (0, 0, 1))
-                            if not (act[b, i - di, j - dj, k - dk] and act[b, i + di, j + dj, k + dk]):
-                                good = False
-                                break
-                            d = vals[b, i + di, j + dj, k + dk] - vals[b, i - di, j - dj, k - dk]
-                        else:
-                            lo, alo = _nb(vals, act, nbr, b, i, j, k, 2 * axis)
-                            hi, ahi = _nb(vals, act, nbr, b, i, j, k, 2 * axis + 1)
-                            if not (alo and ahi):
-                                good = False
-                                break
-                            d = hi - lo
-                        g2 += d * d
-                    if good:
-                        g = np.sqrt(g2) / (2.0 * h)
-                        hist[min(int(g * scale), nb - 1)] += 1
-                        n += 1
-                        total += g
+                    dx = buf[i + 1, j, k] - buf[i - 1, j, k]
+                    dy = buf[i, j + 1, k] - buf[i, j - 1, k]
+                    dz = buf[i, j, k + 1] - buf[i, j, k - 1]
+                    g = math.sqrt(dx * dx + dy * dy + dz * dz) * inv
+                    hist[min(int(g * scale), nb - 1)] += 1
+                    n += 1
+                    total += g
     return n, total
 
 
 @njit(cache=True)
 def _sign_flips(vals, act, ref, ref_act, nbr):
-    """Edges (+x,+y,+z) between active voxels where ``vals`` changes sign and ``ref`` does not."""
+    """Edges (+x,+y,+z) between active voxels where ``vals`` changes sign and ``ref`` does not
+    (both read per block into buffers with their face layers)."""
     extra = 0
     edges = 0
+    vb = np.zeros((10, 10, 10))
+    ab = np.zeros((10, 10, 10), dtype=np.bool_)
+    rb = np.zeros((10, 10, 10))
+    rab = np.zeros((10, 10, 10), dtype=np.bool_)
     for b in range(vals.shape[0]):
-        for i in range(8):
-            for j in range(8):
-                for k in range(8):
-                    if not (act[b, i, j, k] and ref_act[b, i, j, k]):
+        _load_padded(vals, act, nbr, b, vb, ab)
+        _load_padded(ref, ref_act, nbr, b, rb, rab)
+        for i in range(1, 9):
+            for j in range(1, 9):
+                for k in range(1, 9):
+                    if not (ab[i, j, k] and rab[i, j, k]):
                         continue
-                    for f in (1, 3, 5):
-                        v, a = _nb(vals, act, nbr, b, i, j, k, f)
-                        r, ra = _nb(ref, ref_act, nbr, b, i, j, k, f)
-                        if not (a and ra):
+                    for f in range(3):
+                        ii, jj, kk = i + (f == 0), j + (f == 1), k + (f == 2)
+                        if not (ab[ii, jj, kk] and rab[ii, jj, kk]):
                             continue
                         edges += 1
-                        flip = (vals[b, i, j, k] > 0) != (v > 0)
-                        ref_flip = (ref[b, i, j, k] > 0) != (r > 0)
+                        flip = (vb[i, j, k] > 0) != (vb[ii, jj, kk] > 0)
+                        ref_flip = (rb[i, j, k] > 0) != (rb[ii, jj, kk] > 0)
                         if flip and not ref_flip:
                             extra += 1
     return extra, edges

@@ -415,12 +415,18 @@ def _assemble(band: BlockGrid, band_sign: np.ndarray, block_sign: np.ndarray, ke
 
 
 def _excluded_state(origins: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """State array: EXCLUDED for voxels outside the inclusive domain bounds, FREE elsewhere."""
-    r = np.arange(LEAF)
-    ijk = origins[:, :, None] + r[None, None, :]  # (L,3,8)
-    inside = (ijk >= lo[None, :, None]) & (ijk <= hi[None, :, None])
-    ok = inside[:, 0, :, None, None] & inside[:, 1, None, :, None] & inside[:, 2, None, None, :]
-    return np.where(ok, FREE, EXCLUDED).astype(np.int8)
+    """State array: EXCLUDED for voxels outside the inclusive domain bounds, FREE elsewhere.
+
+    Only blocks that cross the domain's boundary are computed voxel by voxel."""
+    state = np.zeros((len(origins), LEAF, LEAF, LEAF), np.int8)  # FREE == 0
+    cut = np.nonzero(np.any((origins < lo) | (origins + LEAF - 1 > hi), axis=1))[0]
+    if len(cut):
+        r = np.arange(LEAF)
+        ijk = origins[cut, :, None] + r[None, None, :]  # (C,3,8)
+        inside = (ijk >= lo[None, :, None]) & (ijk <= hi[None, :, None])
+        ok = inside[:, 0, :, None, None] & inside[:, 1, None, :, None] & inside[:, 2, None, None, :]
+        state[cut] = np.where(ok, FREE, EXCLUDED)
+    return state
 
 
 def signed_distance_blocks(result: EikonalResult) -> BlockGrid:

@@ -44,7 +44,7 @@ from numba import njit
 from scipy import ndimage
 
 from pipeline.eikonal_bricks import BrickedFIM
-from pipeline.fim import EXCLUDED, FREE, FROZEN, fim, init_interface
+from pipeline.fim import EXCLUDED, FREE, FROZEN, block_colour, fim, init_interface
 from pipeline.grid import LEAF, BlockGrid, linear_transform, pack_keys, vdb, write_blocks
 
 SECOND_ORDER_VISITS = 50  # block visits per block before a second-order pass is abandoned
@@ -318,7 +318,8 @@ def solve_distance(
         passes = {"bricks": solver.n_bricks,
                   **_solve(solver.pass_runner(limit, tol, max_sweeps), d, state, seeds, order)}
     else:
-        passes = _solve(_flat_pass(d, state, inside, nbr27, limit, tol, max_sweeps), d, state, seeds, order)
+        passes = _solve(_flat_pass(d, state, inside, nbr27, block_colour(grid.origins), limit, tol, max_sweeps),
+                        d, state, seeds, order)
     t2 = time.perf_counter()
 
     solved = np.isfinite(d)
@@ -368,10 +369,11 @@ def _solve(run_pass, d, state, seeds, order: int) -> dict:
             "converged": second["converged"]}
 
 
-def _flat_pass(d, state, inside, nbr27, limit, tol, max_sweeps):
+def _flat_pass(d, state, inside, nbr27, colour, limit, tol, max_sweeps):
     def run(seeds, order2, visits_per_block):
         cap = visits_per_block * max(len(d), 1)
-        visits, updates, sweeps, ok = fim(d, state, inside, nbr27, seeds, limit, tol, max_sweeps, order2, cap)
+        visits, updates, sweeps, ok = fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2,
+                                          cap)
         return {"block_visits": int(visits), "voxel_updates": int(updates), "sweeps": int(sweeps),
                 "converged": bool(ok)}
     return run

@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from pipeline.fim import FROZEN, fim
+from pipeline.fim import FROZEN, block_colour, fim
 
 FACE_ROWS = np.array([4, 22, 10, 16, 12, 14])  # nbr27 rows of -x, +x, -y, +y, -z, +z
 
@@ -35,13 +35,13 @@ def brick_of_blocks(origins: np.ndarray, brick: int) -> np.ndarray:
 def relax_brick(task: tuple) -> tuple[np.ndarray, np.ndarray, tuple]:
     """Worker side of one brick: the block FIM on its own blocks, ghost blocks read-only.
 
-    ``task`` = (d, state, inside, nbr27, n_own, seeds, limit, tol, max_sweeps, order2,
+    ``task`` = (d, state, inside, nbr27, colour, n_own, seeds, limit, tol, max_sweeps, order2,
     max_visits) over the local blocks (own first, then ghosts). Returns (own distances,
     own blocks that changed, (visits, updates, sweeps, converged)).
     """
-    d, state, inside, nbr27, n_own, seeds, limit, tol, max_sweeps, order2, max_visits = task
+    d, state, inside, nbr27, colour, n_own, seeds, limit, tol, max_sweeps, order2, max_visits = task
     before = d[:n_own].copy()
-    counters = fim(d, state, inside, nbr27, seeds, limit, tol, max_sweeps, order2, max_visits)
+    counters = fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits)
     own = d[:n_own]
     changed = np.nonzero(((own != before) & ~(np.isinf(own) & np.isinf(before))).reshape(n_own, -1).any(axis=1))[0]
     return own, changed, counters
@@ -55,6 +55,7 @@ class BrickedFIM:
         self.d, self.state, self.inside, self.nbr27 = d, state, inside, nbr27
         self.map = map_fn or (lambda fn, items: [fn(x) for x in items])
         self.brick_of = brick_of_blocks(origins, brick)
+        self.colour = block_colour(origins)
         self.n_bricks = int(self.brick_of.max()) + 1 if len(origins) else 0
         self.own = [np.nonzero(self.brick_of == b)[0] for b in range(self.n_bricks)]
         face_nbr = nbr27[:, FACE_ROWS]
@@ -108,7 +109,7 @@ class BrickedFIM:
         state = self.state[rows].copy()
         state[len(own):] = FROZEN  # ghosts are read-only boundary values
         local_seeds = local[np.fromiter(seeds, np.int64, len(seeds))]
-        return (self.d[rows].copy(), state, self.inside[rows], nbr, len(own), np.sort(local_seeds),
+        return (self.d[rows].copy(), state, self.inside[rows], nbr, self.colour[rows], len(own), np.sort(local_seeds),
                 limit, tol, max_sweeps, order2, visits_per_block * len(own))
 
     def _schedule(self, changed: np.ndarray, pending: list[set]) -> None:

@@ -58,6 +58,14 @@ def _load_ref(config: str, name: str, mtime_ns: int) -> Job:
 # --- executors ----------------------------------------------------------------------------------
 
 
+def share_cores(workers: int) -> None:
+    """In a worker process: Numba threads (the eikonal FIM's parallel waves) = this machine's
+    cores divided among ``workers`` processes, so a pool does not oversubscribe the cores."""
+    import numba
+
+    numba.set_num_threads(max(1, min(numba.config.NUMBA_NUM_THREADS, (os.cpu_count() or 1) // workers)))
+
+
 class Executor:
     """``map`` keeps order (bricks), ``map_unordered`` yields results as they finish (jobs)."""
 
@@ -82,7 +90,8 @@ class LocalExecutor(Executor):
 
     def __init__(self, workers: int | None = None):
         self.workers = workers or os.cpu_count() or 1
-        self.pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+        self.pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=share_cores, initargs=(self.workers,))
 
     def map(self, fn, items):
         return list(self.pool.map(fn, items))
@@ -112,6 +121,8 @@ class DaskExecutor(Executor):
             self.cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
                                         processes=True, dashboard_address=None)
             self.client = Client(self.cluster)
+            n = len(self.client.scheduler_info()["workers"])
+            self.client.run(share_cores, n)  # our own workers share this machine's cores
         self.workers = len(self.client.scheduler_info()["workers"])
         self.address = self.client.scheduler.address
 

@@ -171,3 +171,26 @@ stages:
         g = vdb.read(str(tmp_path / "out" / n / f"{n}.vdb"), "frep")
         vals.append(g.getConstAccessor().getValue((8, 0, 0)))  # x = 0.5
     assert vals[0] < 0 < vals[2]
+
+
+def numba_threads(_: int) -> int:
+    import numba
+
+    return numba.get_num_threads()
+
+
+def test_pool_workers_share_the_cores() -> None:
+    """Each of N pool workers runs its parallel kernels on cores // N threads (no oversubscription)."""
+    import os
+
+    ex = LocalExecutor(2)
+    try:
+        assert ex.map(numba_threads, [0, 1, 2, 3]) == [max(1, (os.cpu_count() or 1) // 2)] * 4
+    finally:
+        ex.close()
+
+
+def test_dask_local_workers_share_the_cores(cluster) -> None:
+    import os
+
+    assert set(cluster.client.run(numba_threads, 0).values()) == {max(1, (os.cpu_count() or 1) // 2)}

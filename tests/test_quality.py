@@ -44,7 +44,7 @@ def _flips_numpy(field: BlockGrid, ref: BlockGrid) -> tuple[int, int]:
             q = (p[0] + d[0], p[1] + d[1], p[2] + d[2])
             if q in f and q in r:
                 edges += 1
-                extra += ((v > 0) != (f[q] > 0)) and not ((r[p] > 0) != (r[q] > 0))
+                extra += ((v > 0) != (f[q] > 0)) and (r[p] > 0) == (r[q] > 0)
     return extra, edges
 
 

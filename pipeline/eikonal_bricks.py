@@ -102,13 +102,10 @@ class BrickedFIM:
     def _task(self, b: int, seeds: set, limit, tol, max_sweeps, order2, visits_per_block) -> tuple:
         own, ghost = self.own[b], self.ghosts[b]
         rows = np.concatenate([own, ghost])
-        local = np.full(len(self.d), -1, np.int64)
-        local[rows] = np.arange(len(rows))
-        nbr = self.nbr27[rows]
-        nbr = np.where(nbr >= 0, local[np.maximum(nbr, 0)], -1)
+        nbr = _local_index(rows, self.nbr27[rows])
         state = self.state[rows].copy()
         state[len(own):] = FROZEN  # ghosts are read-only boundary values
-        local_seeds = local[np.fromiter(seeds, np.int64, len(seeds))]
+        local_seeds = _local_index(rows, np.fromiter(seeds, np.int64, len(seeds)))
         return (self.d[rows].copy(), state, self.inside[rows], nbr, self.colour[rows], len(own), np.sort(local_seeds),
                 limit, tol, max_sweeps, order2, visits_per_block * len(own))
 
@@ -123,3 +120,11 @@ class BrickedFIM:
         other = self.brick_of[n] != self.brick_of[src]
         for blk in np.unique(n[other]):
             pending[self.brick_of[blk]].add(int(blk))
+
+
+def _local_index(rows: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    """Position in ``rows`` of each global block number (-1 where absent or negative); cost
+    follows the brick's size, not the whole grid's."""
+    order = np.argsort(rows)
+    pos = np.minimum(np.searchsorted(rows[order], blocks), len(rows) - 1)
+    return np.where((blocks >= 0) & (rows[order][pos] == blocks), order[pos], -1)

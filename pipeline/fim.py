@@ -5,7 +5,7 @@ Used by :mod:`pipeline.eikonal`. The distance array ``d`` is (L,8,8,8) in voxel 
 ``(dx+1)*9 + (dy+1)*3 + (dz+1)``, -1 where absent), so a kernel can read any voxel up to 8
 steps outside its block without hashing.
 
-Two upwind discretisations of |grad u| = 1 share one solver (:func:`upwind_update`):
+Two upwind discretisations of |grad u| = 1 share one solver (:func:`upwind3`):
 
 * first order (Godunov): per axis the smaller neighbour ``a1``, term ``(u - a1)^2``;
 * second order (Sethian 1999, "Fast marching methods", section 4.3): where the next voxel
@@ -49,41 +49,12 @@ def locate(nbr27, b, i, j, k):
 
 
 @njit(cache=True, inline="always")
-def upwind_update(bs, cs, n):
-    """Solve sum_m cs[m]^2 (u - bs[m])^2 = 1 with the Godunov choice of upwind axes.
-
-    ``bs``: the per-axis upwind values (first order: the neighbour; second order:
-    (4 a1 - a2) / 3), ``cs``: 1 or 3/2. Axes join in increasing ``bs`` while the solution
-    exceeds the next value (Jeong & Whitaker 2008, eq. 3; Sethian 1999, eq. 4.6).
-    """
-    for p in range(n):  # insertion order by bs (n <= 3)
-        for q in range(n - 1 - p):
-            if bs[q] > bs[q + 1]:
-                bs[q], bs[q + 1] = bs[q + 1], bs[q]
-                cs[q], cs[q + 1] = cs[q + 1], cs[q]
-    u = np.inf
-    a = 0.0
-    s = 0.0
-    c = -1.0
-    for m in range(n):
-        w = cs[m] * cs[m]
-        a += w
-        s += w * bs[m]
-        c += w * bs[m] * bs[m]
-        disc = s * s - a * c
-        if disc < 0.0:
-            break
-        u = (s + math.sqrt(disc)) / a
-        if m + 1 < n and u <= bs[m + 1]:
-            break
-    return u
-
-
-@njit(cache=True, inline="always")
 def upwind3(b0, w0, b1, w1, b2, w2):
-    """:func:`upwind_update` on scalars: ``w = c^2`` per axis, ``b = inf`` for an axis without an
-    upwind neighbour (at least ``b0`` finite). A three-element sorting network and the closed
-    forms for one, two and three axes: the hot path of the relaxation."""
+    """Solve sum_a w_a (u - b_a)^2 = 1 with the Godunov choice of upwind axes: ``w = c^2`` per
+    axis (1 first order, 9/4 second order), ``b = inf`` for an axis without an upwind
+    neighbour (at least one finite). Axes join in increasing ``b`` while the solution exceeds
+    the next value (Jeong & Whitaker 2008, eq. 3; Sethian 1999, eq. 4.6): a three-element
+    sorting network and the closed forms for one, two and three axes."""
     if b0 > b1:
         b0, b1, w0, w1 = b1, b0, w1, w0
     if b1 > b2:
@@ -267,19 +238,21 @@ def _take_wave(lists, counts, on_list, c):
 
 
 @njit(cache=True)
-def _enqueue(work, faces, nbr27, colour, lists, counts, on_list):
-    """Face neighbours whose ghost layers changed go on their colour's list (serial, in list
-    order: the result is deterministic)."""
+def _finish_wave(work, out, nbr27, colour, lists, counts, on_list):
+    """After a wave (``out`` rows: faces, updates, sweeps per block): the face neighbours whose
+    ghost layers changed go on their colour's list (serial, in list order: the result is
+    deterministic). Returns (visits, updates, sweeps) of the wave."""
     for t in range(len(work)):
         b = work[t]
         for f in range(6):
-            if faces[t] & (1 << f):
+            if out[t, 0] & (1 << f):
                 n = nbr27[b, FACE_ROWS[f]]
                 if n >= 0 and not on_list[n]:
                     on_list[n] = True
                     cn = colour[n]
                     lists[cn, counts[cn]] = n
                     counts[cn] += 1
+    return len(work), out[:, 1].sum(), out[:, 2].sum()
 
 
 @njit(cache=True)
@@ -304,10 +277,8 @@ def _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, 
             work = _take_wave(lists, counts, on_list, c)
             out = np.zeros((len(work), 3), dtype=np.int64)
             _relax_range(d, state, inside, nbr27, work, 0, len(work), limit, tol, max_sweeps, order2, buf, sbuf, out)
-            visits += len(work)
-            updates += out[:, 1].sum()
-            sweeps += out[:, 2].sum()
-            _enqueue(work, out[:, 0], nbr27, colour, lists, counts, on_list)
+            v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list)
+            visits, updates, sweeps = visits + v, updates + u, sweeps + w
         c = 1 - c
     return visits, updates, sweeps, True
 
@@ -332,10 +303,8 @@ def _fim_parallel(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps
             for ch in numba.prange(k):
                 _relax_range(d, state, inside, nbr27, work, ch * m // k, (ch + 1) * m // k, limit, tol, max_sweeps,
                              order2, bufs[ch], sbufs[ch], out)
-            visits += m
-            updates += out[:, 1].sum()
-            sweeps += out[:, 2].sum()
-            _enqueue(work, out[:, 0], nbr27, colour, lists, counts, on_list)
+            v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list)
+            visits, updates, sweeps = visits + v, updates + u, sweeps + w
         c = 1 - c
     return visits, updates, sweeps, True
 

@@ -17,7 +17,7 @@ On level 1 a node whose leaf the fine level solved completely is frozen at the f
 the node (trilinear: the mean of the 8 voxels around the leaf centre); on level 2 a node is
 frozen where the trilinear value of level 1 is defined (its 8 surrounding nodes solved); the other
 nodes are solved by a node FIM (active list, Jeong & Whitaker 2008) with the Godunov update
-:func:`pipeline.fim.upwind_update` at spacing s_l (then the second-order pass, as the fine
+:func:`pipeline.fim.upwind3` at spacing s_l (then the second-order pass, as the fine
 solve). Level 1 first runs out to ``coarse_distance_vox`` (as the fine level stops at its
 reach); every level-2 cell it reached is then solved completely on level 1, and level 2 keeps
 only the cells wholly beyond the reach, each written as one 128^3 tile.
@@ -39,7 +39,7 @@ from numba import njit
 from scipy import ndimage
 
 from pipeline.eikonal import SECOND_ORDER_VISITS, EikonalResult, solve_distance
-from pipeline.fim import EXCLUDED, FREE, FROZEN, upwind_update
+from pipeline.fim import EXCLUDED, FREE, FROZEN, upwind3
 from pipeline.grid import LEAF, linear_transform, vdb, write_blocks
 
 LEVEL_CELLS = (8, 128)  # cell edge in voxels of levels 1, 2: an OpenVDB leaf and an internal-node child
@@ -108,8 +108,6 @@ def node_fim(d, state, inside, spacing, limit, tol, order2, max_visits):
     on_list = np.zeros(n, dtype=np.bool_)
     head = 0
     tail = 0
-    bs = np.empty(3)
-    cs = np.empty(3)
     for p in range(n):
         a, r = divmod(p, nb * nc)
         b, c = divmod(r, nc)
@@ -134,7 +132,7 @@ def node_fim(d, state, inside, spacing, limit, tol, order2, max_visits):
         on_list[p] = False
         a, r = divmod(p, nb * nc)
         b, c = divmod(r, nc)
-        u = _node_update(d, state, inside, a, b, c, spacing, bs, cs, order2)
+        u = _node_update(d, state, inside, a, b, c, spacing, order2)
         if u > limit:
             continue
         if order2:
@@ -168,37 +166,37 @@ def _nb(a, b, c, f, step):
 
 
 @njit(cache=True, inline="always")
-def _node_update(d, state, inside, a, b, c, spacing, bs, cs, order2):
+def _node_update(d, state, inside, a, b, c, spacing, order2):
     """Godunov update of node (a, b, c), voxel units: per axis the smaller neighbour; second
     order (Sethian 1999, section 4.3) where the next node on that side is known and not larger,
     with the value across the surface negated (the signed distance is smooth there)."""
-    na, nb, nc = d.shape
-    m = 0
-    me = inside[a, b, c]
-    for ax in range(3):
-        best = np.inf
-        side = 0
-        for f in (2 * ax, 2 * ax + 1):
-            x, y, z = _nb(a, b, c, f, 1)
-            inb = 0 <= x < na and 0 <= y < nb and 0 <= z < nc
-            if inb and state[x, y, z] != EXCLUDED and d[x, y, z] < best:
-                best = d[x, y, z]
-                side = f
-        if best == np.inf:
-            continue
-        bs[m] = best / spacing
-        cs[m] = 1.0
-        if order2:
-            x, y, z = _nb(a, b, c, side, 2)
-            if 0 <= x < na and 0 <= y < nb and 0 <= z < nc and state[x, y, z] != EXCLUDED:
-                a2 = d[x, y, z] if inside[x, y, z] == me else -d[x, y, z]
-                if a2 <= best:
-                    bs[m] = (4.0 * best - a2) / 3.0 / spacing
-                    cs[m] = 1.5
-        m += 1
-    if m == 0:
+    bx, wx = _node_axis(d, state, inside, a, b, c, 0, order2)
+    by, wy = _node_axis(d, state, inside, a, b, c, 1, order2)
+    bz, wz = _node_axis(d, state, inside, a, b, c, 2, order2)
+    if bx == np.inf and by == np.inf and bz == np.inf:
         return np.inf
-    return upwind_update(bs, cs, m) * spacing
+    return upwind3(bx / spacing, wx, by / spacing, wy, bz / spacing, wz) * spacing
+
+
+@njit(cache=True, inline="always")
+def _node_axis(d, state, inside, a, b, c, ax, order2):
+    """(b, c^2) of one axis at node (a, b, c), as :func:`pipeline.fim.upwind3` takes them."""
+    na, nb, nc = d.shape
+    best = np.inf
+    side = 0
+    for f in (2 * ax, 2 * ax + 1):
+        x, y, z = _nb(a, b, c, f, 1)
+        if 0 <= x < na and 0 <= y < nb and 0 <= z < nc and state[x, y, z] != EXCLUDED and d[x, y, z] < best:
+            best = d[x, y, z]
+            side = f
+    if best == np.inf or not order2:
+        return best, 1.0
+    x, y, z = _nb(a, b, c, side, 2)
+    if 0 <= x < na and 0 <= y < nb and 0 <= z < nc and state[x, y, z] != EXCLUDED:
+        a2 = d[x, y, z] if inside[x, y, z] == inside[a, b, c] else -d[x, y, z]
+        if a2 <= best:
+            return (4.0 * best - a2) / 3.0, 2.25
+    return best, 1.0
 
 
 def _lattice(lo: np.ndarray, hi: np.ndarray, cell: int) -> tuple[np.ndarray, tuple[int, int, int]]:

@@ -22,13 +22,23 @@ C = np.array([0.013, -0.021, 0.007])  # off-grid centre: no voxel-aligned symmet
 HALF = np.array([0.5, 0.35, 0.45])
 
 
-def sphere(p: np.ndarray) -> np.ndarray:
-    return 0.6 - np.linalg.norm(p - C, axis=-1)
+def sphere_of(radius: float):
+    """FRep sphere (exact distance, positive inside) of ``radius`` centred at C."""
+    def fn(p: np.ndarray) -> np.ndarray:
+        return radius - np.linalg.norm(p - C, axis=-1)
+    return fn
 
 
-def box(p: np.ndarray) -> np.ndarray:
-    q = np.abs(p - C) - HALF
-    return -(np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(-1), 0))
+def box_of(half: np.ndarray):
+    """FRep box (exact signed distance, positive inside) of half-extents ``half`` centred at C."""
+    def fn(p: np.ndarray) -> np.ndarray:
+        q = np.abs(p - C) - half
+        return -(np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(-1), 0))
+    return fn
+
+
+sphere = sphere_of(0.6)
+box = box_of(HALF)
 
 
 def torus(p: np.ndarray) -> np.ndarray:

@@ -10,18 +10,11 @@ import pytest
 from pipeline.eikonal import solve_distance
 from pipeline.grid import LEAF, vdb
 from pipeline.hfim import hierarchical_distance, hierarchical_grid, stored_values
-from tests.test_eikonal import C, band_grid
+from tests.test_eikonal import band_grid, box_of, sphere_of
 
 HALF = np.array([0.2, 0.15, 0.18])
-
-
-def sphere(p: np.ndarray) -> np.ndarray:
-    return 0.25 - np.linalg.norm(p - C, axis=-1)
-
-
-def box(p: np.ndarray) -> np.ndarray:
-    q = np.abs(p - C) - HALF
-    return -(np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(-1), 0))
+sphere = sphere_of(0.25)
+box = box_of(HALF)
 
 
 SHAPES = {"sphere": sphere, "box": box}

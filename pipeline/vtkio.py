@@ -114,12 +114,11 @@ def sample_values(grid: Any, ijk: np.ndarray) -> np.ndarray:
     sk = keys[order]
     starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
     ends = np.r_[starts[1:], len(sk)]
-    size = 1 << CHUNK_LOG2
-    buf = np.empty((size, size, size), np.float32)
+    size = (1 << CHUNK_LOG2,) * 3
     for s, e in zip(starts.tolist(), ends.tolist(), strict=True):
         idx = order[s:e]
         origin = chunk[idx[0]] << CHUNK_LOG2
-        grid.copyToArray(buf, tuple(int(c) for c in origin))
+        buf = read_dense(grid, origin, size)
         rel = ijk[idx] - origin
         out[idx] = buf[rel[:, 0], rel[:, 1], rel[:, 2]]
     return out

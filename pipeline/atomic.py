@@ -23,12 +23,27 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
     os.close(fd)
     try:
-        yield Path(tmp)
+        try:
+            yield Path(tmp)
+        except OSError as e:
+            if e.filename and e.filename != tmp:
+                raise
+            # writers that get a file object (PIL, json) lose the name: say which file failed
+            raise OSError(e.errno, e.strerror or str(e), str(path)) from e
+        _fsync(tmp)  # the data is on disk before the name points at it
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual permissions
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _fsync(path: str) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _umask() -> int:
@@ -38,8 +53,23 @@ def _umask() -> int:
 
 
 def write_json(path: str | os.PathLike, data) -> None:
+    """Strict JSON (no ``NaN``/``Infinity``, which JSON does not have: non-finite floats are
+    written as null) so that every JSON reader can read a manifest."""
+    text = json.dumps(_finite(data), indent=2, default=_default, allow_nan=False) + "\n"
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, default=_default) + "\n")
+        tmp.write_text(text)
+
+
+def _finite(o):
+    import math
+
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite(v) for v in o]
+    return o
 
 
 def _default(o):
@@ -48,7 +78,7 @@ def _default(o):
     if isinstance(o, np.integer):
         return int(o)
     if isinstance(o, np.floating):
-        return float(o)
+        return _finite(float(o))
     if isinstance(o, np.ndarray):
-        return o.tolist()
+        return _finite(o.tolist())
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")

@@ -15,7 +15,6 @@ import functools
 import json
 import multiprocessing
 import os
-import shutil
 import time
 import traceback
 from collections.abc import Callable, Iterable, Iterator
@@ -24,9 +23,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipeline.atomic import write_json
 from pipeline.config import Job, load_jobs
 from pipeline.errors import ConfigError
+from pipeline.outputs import prepare_out_root
 
 
 @dataclass(frozen=True)
@@ -66,6 +65,19 @@ def share_cores(workers: int) -> None:
     numba.set_num_threads(max(1, min(numba.config.NUMBA_NUM_THREADS, (os.cpu_count() or 1) // workers)))
 
 
+def _worker_init(workers: int) -> None:
+    """Pool worker start-up: share the cores; SIGTERM unwinds the running job (its staging
+    folder is removed and its lock released) instead of killing the process mid-write."""
+    import signal
+
+    share_cores(workers)
+    signal.signal(signal.SIGTERM, _interrupt)
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 class Executor:
     """``map`` keeps order (bricks), ``map_unordered`` yields results as they finish (jobs)."""
 
@@ -78,7 +90,7 @@ class Executor:
         for x in items:
             yield fn(x)
 
-    def close(self) -> None:
+    def close(self, interrupted: bool = False) -> None:
         pass
 
     def describe(self) -> str:
@@ -91,7 +103,7 @@ class LocalExecutor(Executor):
     def __init__(self, workers: int | None = None):
         self.workers = workers or os.cpu_count() or 1
         self.pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                        initializer=share_cores, initargs=(self.workers,))
+                                        initializer=_worker_init, initargs=(self.workers,))
 
     def map(self, fn, items):
         return list(self.pool.map(fn, items))
@@ -101,8 +113,11 @@ class LocalExecutor(Executor):
         for f in as_completed(futures):
             yield f.result()
 
-    def close(self):
-        self.pool.shutdown()
+    def close(self, interrupted: bool = False):
+        if interrupted:  # SIGTERM the workers: each removes its job's staging folder and lock
+            for proc in list(getattr(self.pool, "_processes", {}).values()):
+                proc.terminate()
+        self.pool.shutdown(wait=True, cancel_futures=interrupted)
 
     def describe(self):
         return f"local process pool, {self.workers} workers"
@@ -135,7 +150,7 @@ class DaskExecutor(Executor):
         for f in dask_completed(self.client.map(fn, items, pure=False)):
             yield f.result()
 
-    def close(self):
+    def close(self, interrupted: bool = False):
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()
@@ -171,8 +186,9 @@ def up_to_date(job: Job, out: Path) -> bool:
 
 def execute(job: Job, out: Path, force: bool = False, executor: Executor | None = None,
             progress: Any = None) -> dict:
-    """Run one job; never raises for a job's own failure: returns its summary row."""
-    from pipeline.runner import run_job
+    """Run one job; never raises for a job's own failure: returns its summary row (the job's
+    folder then holds its previous outputs, if any, and ``manifest.failed.json``)."""
+    from pipeline.runner import failure_status, run_job
 
     t0 = time.perf_counter()
     row = {"name": job.name, "config": job.config_path, "status": "ok", "seconds": 0.0, "message": ""}
@@ -184,12 +200,11 @@ def execute(job: Job, out: Path, force: bool = False, executor: Executor | None 
         row["active_voxels"] = manifest["grids"].get("frep", {}).get("active_voxels")
         row["components"] = manifest.get("components", {}).get("count")
         row["outputs"] = len(manifest["outputs"])
-    except ConfigError as e:
-        row.update(status="input-error", message="\n".join(e.lines()))
-        _failure_manifest(job, out, row)
     except Exception as e:  # the job failed; the batch goes on
-        row.update(status="failed", message=f"{type(e).__name__}: {e}", traceback=traceback.format_exc())
-        _failure_manifest(job, out, row)
+        status, message = failure_status(e)
+        row.update(status=status, message=message)
+        if status == "failed":
+            row["traceback"] = traceback.format_exc()
     row["seconds"] = round(time.perf_counter() - t0, 3)
     return row
 
@@ -204,17 +219,6 @@ def execute_ref(args: tuple[JobRef, str, bool]) -> dict:
     return execute(job, Path(out), force)
 
 
-def _failure_manifest(job: Job, out: Path, row: dict) -> None:
-    """The failed job's folder holds only a manifest that says why (no partial outputs)."""
-    folder = out / job.name
-    if folder.exists():
-        shutil.rmtree(folder)
-    write_json(folder / "manifest.json", {
-        "name": job.name, "config": job.config_path, "config_sha256": job.config_sha256,
-        "job_sha256": job.job_sha256, "status": row["status"], "error": row["message"],
-        "outputs": [{"path": "manifest.json", "kind": "manifest"}], "grids": {}, "stages": [], "warnings": []})
-
-
 # --- a batch ----------------------------------------------------------------------------------------
 
 
@@ -222,7 +226,8 @@ def run_batch(jobs: list[Job], out: Path, executor: Executor, force: bool = Fals
               on_done: Callable[[dict], None] | None = None, progress: Any = None) -> list[dict]:
     """Run every job; bricked jobs run here with their bricks on the executor, the others are
     spread over the executor's workers. Returns the summary rows in job order."""
-    out = Path(out)
+    out = prepare_out_root(out)
+    check_unique_names(jobs)
     rows: dict[str, dict] = {}
     parallel = [j for j in jobs if not j.bricks]
     here = [j for j in jobs if j.bricks]
@@ -239,6 +244,26 @@ def run_batch(jobs: list[Job], out: Path, executor: Executor, force: bool = Fals
             on_done(row)
     _write_frame_series(jobs, out, rows)
     return [rows[j.name] for j in jobs]
+
+
+def check_unique_names(jobs: list[Job]) -> None:
+    """Two jobs of one batch never write the same folder: a duplicate name is an input error
+    naming both places (the same config given twice included)."""
+    first: dict[str, Job] = {}
+    problems = []
+    for j in jobs:
+        if j.name in first:
+            o = first[j.name]
+            if Path(o.config_path).resolve() == Path(j.config_path).resolve() and o.index == j.index:
+                problems.append((j.config_path, None, (), "this config is given twice; each job runs once"))
+                continue
+            problems.append((j.config_path, j.name_line, (), f"job name {j.name!r} is also the name of a job in "
+                             f"{o.config_path}{f':{o.name_line}' if o.name_line else ''} (outputs go to "
+                             "<out>/<name>/; give each job its own name)"))
+        else:
+            first[j.name] = j
+    if problems:
+        raise ConfigError(problems)
 
 
 def _write_frame_series(jobs: Iterable[Job], out: Path, rows: dict) -> None:

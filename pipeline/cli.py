@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import traceback
 from pathlib import Path
 
 import yaml
@@ -15,6 +17,7 @@ EXIT_OK, EXIT_FAIL, EXIT_INPUT = 0, 1, 2
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    previous = _terminate_on_sigterm()
     try:
         return args.func(args)
     except ConfigError as e:
@@ -24,6 +27,34 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return EXIT_FAIL
+    except Exception as e:  # noqa: BLE001 - one line for the user; --debug shows the traceback
+        if getattr(args, "debug", False):
+            traceback.print_exc()
+        print(f"error: {_one_line(e)}", file=sys.stderr)
+        return EXIT_FAIL
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _one_line(e: BaseException, limit: int = 300) -> str:
+    text = " ".join(str(e).split()) or type(e).__name__
+    if isinstance(e, OSError) and e.filename:
+        text = f"{e.filename}: {e.strerror or text}"
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+def _terminate_on_sigterm():
+    """SIGTERM ends a run like Ctrl-C: staging folders are removed, locks released, exit 1."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_interrupt)
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -31,7 +62,7 @@ def _parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="run one or more configs")
     r.add_argument("configs", nargs="+", type=Path)
-    r.add_argument("--out", type=Path, default=Path("outputs"), help="output root (default: outputs)")
+    r.add_argument("--out", default="outputs", help="output root (default: outputs)")
     r.add_argument("--executor", choices=["local", "dask"], default=None, help="default: the config's, else local")
     r.add_argument("--workers", type=int, default=None)
     r.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
@@ -40,14 +71,17 @@ def _parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_run)
     v = sub.add_parser("validate", help="parse and check a config; print it normalised")
     v.add_argument("config", type=Path)
+    v.add_argument("--debug", action="store_true", help="print tracebacks of failures")
     v.set_defaults(func=cmd_validate)
     i = sub.add_parser("info", help="describe the grids in a .vdb file")
     i.add_argument("file", type=Path)
+    i.add_argument("--debug", action="store_true", help="print tracebacks of failures")
     i.set_defaults(func=cmd_info)
     c = sub.add_parser("collide", help="do two models intersect? (component count of A AND B)")
     c.add_argument("a", type=Path)
     c.add_argument("b", type=Path)
     c.add_argument("--tolerance", type=float, default=None, help="finest cell (default: the smaller voxel size)")
+    c.add_argument("--debug", action="store_true", help="print tracebacks of failures")
     c.set_defaults(func=cmd_collide)
     return ap
 
@@ -106,6 +140,15 @@ def cmd_run(args) -> int:
             status = EXIT_INPUT
     if not jobs:
         return status
+    from pipeline.batch import check_unique_names
+    from pipeline.outputs import prepare_out_root
+
+    try:
+        check_unique_names(jobs)
+        out = prepare_out_root(args.out)
+    except ConfigError as e:
+        _print_problems(e)
+        return EXIT_INPUT
     conf = next((j.executor for j in jobs if j.executor is not None), None)
     kind = args.executor or (conf.kind if conf else "local")
     workers = args.workers or (conf.workers if conf else None)
@@ -114,10 +157,12 @@ def cmd_run(args) -> int:
     executor = make_executor(kind, workers, scheduler, jobs=len(jobs) + (2 if bricked else 0))
     try:
         with BatchProgress(jobs) as progress:
-            rows = run_batch(jobs, args.out, executor, force=args.force, on_done=progress.job_done,
+            rows = run_batch(jobs, out, executor, force=args.force, on_done=progress.job_done,
                              progress=progress.stage)
-    finally:
-        executor.close()
+    except KeyboardInterrupt:
+        executor.close(interrupted=True)
+        raise
+    executor.close()
     for row in rows:
         if row["status"] == "input-error":
             print("\n".join(f"error: {line}" for line in row["message"].splitlines()), file=sys.stderr)
@@ -127,7 +172,7 @@ def cmd_run(args) -> int:
             if args.debug and row.get("traceback"):
                 print(row["traceback"], file=sys.stderr)
             status = status if status == EXIT_INPUT else EXIT_FAIL
-    _summary(rows, Path(args.out), executor.describe())
+    _summary(rows, out, executor.describe())
     return status
 
 

@@ -12,16 +12,17 @@ import hashlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from pipeline.errors import ConfigError, InputError, format_path
 from pipeline.nodes import REGISTRY, Node
 from pipeline.nodes.base import Vec3
 from pipeline.nodes.expr import FormulaError
+from pipeline.outputs import job_name_problem
 
 MAX_INDEX = 2**30  # OpenVDB index coordinates are 32-bit; keep a safety margin
 
@@ -206,6 +207,10 @@ def build_node(raw: Any, path: tuple, ctx: _Ctx) -> Node:
         raise ctx.fail(here + (() if strip else ("formula",)), f"bad formula: {e}") from None
     except InputError as e:
         raise ctx.fail(here, str(e)) from None
+    except OSError as e:  # a file the node names cannot be opened (too long a name, permissions, ...)
+        name = str(e.filename or "")
+        shown = name if len(name) <= 80 else name[:60] + f"... ({len(name)} characters)"
+        raise ctx.fail(here, f"cannot open {shown}: {e.strerror or e}") from None
 
 
 def _normalise_body(cls: type[Node], body: Any, path: tuple, ctx: _Ctx) -> tuple[dict, str | None]:
@@ -277,10 +282,20 @@ class BricksConfig(_Strict):
         return self
 
 
+def _check_name(name: str) -> str:
+    problem = job_name_problem(name) if name else None
+    if problem:
+        raise ValueError(problem)
+    return name
+
+
+JobName = Annotated[str, AfterValidator(_check_name)]
+
+
 class JobEntry(_Strict):
     """One entry of ``jobs:``; missing keys come from the top level."""
 
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
+    name: JobName = Field(min_length=1)
     domain: DomainConfig | None = None
     model: Any
     stages: list[Any] | None = Field(default=None, min_length=1)
@@ -288,7 +303,7 @@ class JobEntry(_Strict):
 
 
 class TopConfig(_Strict):
-    name: str = Field(default="", pattern=r"^[A-Za-z0-9_.-]*$")
+    name: JobName = ""
     domain: DomainConfig | None = None
     model: Any = None
     stages: list[Any] | None = Field(default=None, min_length=1)
@@ -345,6 +360,7 @@ class Job:
     bricks: int | None = None
     executor: ExecutorConfig | None = None
     job_sha256: str = ""  # hash of the normalised job and its input files: the key for resume
+    name_line: int | None = None  # line of its ``name:`` key (None: the name is the file's stem)
 
 
 def load_jobs(path: str | Path, select: str | None = None) -> list[Job]:
@@ -362,6 +378,9 @@ def load_jobs(path: str | Path, select: str | None = None) -> list[Job]:
         raise ConfigError(validation_problems(e, file, root, (), TopConfig)) from None
     ctx = _Ctx(file, root, path.resolve().parent)
     sha = hashlib.sha256(path.read_bytes()).hexdigest()
+    if top.jobs is None and not top.name and job_name_problem(path.stem):
+        raise ConfigError.one(file, None, (), f"the job is named after the file ({path.name!r}), which is not a "
+                              f"valid job name: {job_name_problem(path.stem)}; add a `name:` key")
     entries = [(None, top.name or path.stem, None, top.model, None, None)] if top.jobs is None else [
         (i, e.name, e.domain, e.model, e.stages, e.t) for i, e in enumerate(top.jobs)]
     jobs = []
@@ -404,7 +423,10 @@ def _entry_jobs(ctx: _Ctx, top: TopConfig, sha: str, base: tuple, index: int, na
         ctx.domain, ctx.t = domain, tf
         model = build_node(model_raw, base + ("model",), ctx)  # each job owns its tree
         job = Job(job_name, ctx.file, sha, domain, model, stages, tf, ctx.root, index=(index, f or 0),
-                  bricks=top.bricks.size if top.bricks else None, executor=top.executor)
+                  bricks=top.bricks.size if top.bricks else None, executor=top.executor,
+                  name_line=_name_line(ctx.root, base))
+        if job_name_problem(job_name):  # a frame suffix can make a valid name too long
+            raise ctx.fail(base + ("name",), job_name_problem(job_name))
         if f is not None:
             job.frame = {"index": f, "count": top.frames.count, "t": tf, "series": name}
         job.normalised = _normalised(job, model_raw)
@@ -413,6 +435,13 @@ def _entry_jobs(ctx: _Ctx, top: TopConfig, sha: str, base: tuple, index: int, na
         _check_memory(job, ctx, base)
         jobs.append(job)
     return jobs
+
+
+def _name_line(root: Any, base: tuple) -> int | None:
+    node = root
+    for part in base:
+        node = node[part]
+    return node.lines.get("name") if isinstance(node, LineDict) and "name" in node else None
 
 
 def _job_hash(job: Job) -> str:

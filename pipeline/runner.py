@@ -1,11 +1,13 @@
 """Run a job: config -> model tree -> stages -> files, with a manifest and atomic outputs.
 
 A job writes into a staging folder next to ``<out>/<name>/`` and swaps it in only when every
-stage succeeded, so a failed run never leaves half-written outputs behind.
+stage succeeded and every file was verified and flushed (pipeline.outputs), so a failed run
+never leaves half-written outputs behind and never removes the previous ones.
 """
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import time
 from pathlib import Path
@@ -15,29 +17,79 @@ from pipeline.config import Job, locate_nonfinite
 from pipeline.context import JobContext
 from pipeline.errors import ConfigError, InputError
 from pipeline.grid import grid_stats
+from pipeline.outputs import (
+    JobBusy,
+    JobLock,
+    fsync_tree,
+    job_dir,
+    new_staging,
+    os_error_line,
+    prepare_out_root,
+    swap_in,
+    verify_outputs,
+    write_failure,
+)
 from pipeline.voxelise import NonFiniteField
 
 
 def run_job(job: Job, out_root: str | Path, progress=None, executor=None) -> dict:
-    """Run every stage of ``job``; returns the manifest. Raises ConfigError for bad input."""
-    out_root = Path(out_root)
-    final = out_root / job.name
-    staging = out_root / f".{job.name}.partial"
-    if staging.exists():
-        shutil.rmtree(staging)
-    staging.mkdir(parents=True)
+    """Run every stage of ``job`` into ``<out_root>/<name>/``; returns the manifest.
+
+    Holds the job's lock throughout; outputs are staged, verified, flushed and swapped in only when
+    everything succeeded. On any failure the previous outputs stay as they were,
+    ``manifest.failed.json`` is written beside them, and the exception is re-raised (ConfigError
+    for bad input, :class:`JobFailed` with one line for an OS write error)."""
+    folder = job_dir(prepare_out_root(out_root), job.name)
+    with JobLock(folder):
+        staging = new_staging(folder)
+        try:
+            return _run_staged(job, staging, folder, progress, executor)
+        except BaseException as e:
+            shutil.rmtree(staging, ignore_errors=True)
+            if isinstance(e, Exception):
+                _record_failure(job, folder, e, staging)
+            if isinstance(e, OSError):
+                raise JobFailed(os_error_line(e, staging, folder)) from e
+            raise
+
+
+class JobFailed(RuntimeError):
+    """A job that could not finish, with the one line that says why (exit 1)."""
+
+
+def _run_staged(job: Job, staging: Path, folder: Path, progress, executor) -> dict:
     ctx = JobContext(job, staging, progress=progress, executor=executor)
-    try:
-        records = [_run_stage(ctx, name, params) for name, params in job.stages]
-        manifest = _manifest(ctx, records)
-        write_json(staging / "manifest.json", manifest)
-        for hook in ctx.after_manifest:
-            hook(ctx, manifest)
-        _swap_in(staging, final)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
+    records = [_run_stage(ctx, name, params) for name, params in job.stages]
+    manifest = _manifest(ctx, records)
+    write_json(staging / "manifest.json", manifest)
+    for hook in ctx.after_manifest:
+        hook(ctx, manifest)
+    verify_outputs(staging, manifest["outputs"], ctx.grids, main_vdb=f"{job.name}.vdb")
+    fsync_tree(staging)
+    swap_in(staging, folder)
     return manifest
+
+
+def failure_status(e: BaseException, staging: Path | None = None, folder: Path | None = None) -> tuple[str, str]:
+    """(status, one-line message) of a job's failure, as the manifest and the summary say it."""
+    if isinstance(e, ConfigError):
+        return "input-error", "\n".join(e.lines())
+    if isinstance(e, OSError):
+        return "failed", os_error_line(e, staging, folder)
+    if isinstance(e, (JobFailed, JobBusy)):
+        return "failed", str(e)
+    return "failed", f"{type(e).__name__}: {str(e)[:500]}"
+
+
+def _record_failure(job: Job, folder: Path, e: Exception, staging: Path) -> None:
+    status, message = failure_status(e, staging, folder)
+    # the disk that refused the outputs may refuse this too; the summary still says why
+    with contextlib.suppress(OSError):
+        write_failure(folder, {
+            "name": job.name, "config": job.config_path, "config_sha256": job.config_sha256,
+            "job_sha256": job.job_sha256, "status": status, "error": message,
+            "previous_outputs_kept": (folder / "manifest.json").exists(),
+            "outputs": [], "grids": {}, "stages": [], "warnings": []})
 
 
 def _run_stage(ctx: JobContext, name: str, params) -> dict:
@@ -98,14 +150,3 @@ def _inputs(job: Job) -> list[dict]:
         if isinstance(path, str) and Path(path).exists():
             out.append({"path": path, "kind": node.kind, "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest()})
     return out
-
-
-def _swap_in(staging: Path, final: Path) -> None:
-    old = final.with_name(f".{final.name}.old")
-    if old.exists():
-        shutil.rmtree(old)
-    if final.exists():
-        final.rename(old)
-    staging.rename(final)
-    if old.exists():
-        shutil.rmtree(old)

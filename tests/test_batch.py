@@ -72,9 +72,10 @@ def test_local_pool_batch_with_a_failure(tmp_path):
     status = {r["name"]: r["status"] for r in rows}
     assert status.pop("empty") == "failed"
     assert set(status.values()) == {"ok"}
-    failed = json.loads((tmp_path / "out" / "empty" / "manifest.json").read_text())
+    failed = json.loads((tmp_path / "out" / "empty" / "manifest.failed.json").read_text())
     assert failed["status"] == "failed" and "no grid has active voxels" in failed["error"]
-    assert sorted(p.name for p in (tmp_path / "out" / "empty").iterdir()) == ["manifest.json"]
+    assert failed["previous_outputs_kept"] is False
+    assert sorted(p.name for p in (tmp_path / "out" / "empty").iterdir()) == ["manifest.failed.json"]
     assert (tmp_path / "out" / "ring" / "ring.vdb").exists()
 
 

@@ -8,23 +8,55 @@ Unknown keys are errors with a "did you mean" hint.
 from __future__ import annotations
 
 import difflib
+import functools
 import hashlib
 import json
+import math
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
+from yaml.composer import Composer
+from yaml.constructor import SafeConstructor
+from yaml.parser import Parser
+from yaml.reader import Reader
+from yaml.resolver import Resolver
+from yaml.scanner import Scanner
+
+try:
+    from yaml._yaml import CParser
+except ImportError:  # pragma: no cover - PyYAML built without libyaml
+    CParser = None
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pipeline.errors import ConfigError, InputError, format_path
 from pipeline.nodes import REGISTRY, Node
-from pipeline.nodes.base import Vec3
+from pipeline.nodes.base import Real, Vec3
 from pipeline.nodes.expr import FormulaError
 from pipeline.outputs import job_name_problem
 
 MAX_INDEX = 2**30  # OpenVDB index coordinates are 32-bit; keep a safety margin
+
+
+# --- limits (docs/user-guide.md, "Limits") ----------------------------------------------------
+
+#: a config larger than this is refused before it is parsed (real configs are a few KB; YAML
+#: parsing costs about 10 us per value in Python)
+MAX_CONFIG_BYTES = 2 * 2**20
+#: nesting of YAML collections (mappings and lists); a model tree of depth n nests about 2n
+MAX_YAML_DEPTH = 100
+#: alias uses (``*name``) in one config
+MAX_YAML_ALIASES = 1000
+#: collections and scalars of the config once every alias is expanded (the "billion laughs")
+MAX_YAML_NODES = 250_000
+#: entries of ``frames: {count: ...}``; validate builds and checks every frame
+MAX_FRAMES = 10_000
+#: children of one node (``union: [...]``); a union of 10^4 parts is an ordinary model (each child
+#: is at least three YAML values, so MAX_YAML_NODES allows about 80,000)
+MAX_CHILDREN = 50_000
 
 
 # --- YAML with line numbers -----------------------------------------------------------------
@@ -48,8 +80,101 @@ class LineList(list):
         self.lines: list[int] = []
 
 
-class _Loader(yaml.SafeLoader):
-    pass
+class _LimitedComposer(Composer):
+    """PyYAML's composer with limits checked before anything is built: nesting depth (the
+    composer and our constructors recurse per level), alias uses and the expanded size."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._depth = 0
+        self._aliases = 0
+        self._total = 0  # values so far, aliases expanded: checked as they come, not per collection
+
+    def compose_node(self, parent: Any, index: Any) -> yaml.Node:
+        if self.check_event(yaml.AliasEvent):
+            return self._compose_alias(parent, index)
+        mark = self.peek_event().start_mark
+        self._depth += 1
+        if self._depth > MAX_YAML_DEPTH:
+            raise _limit(f"collections nested deeper than {MAX_YAML_DEPTH} levels", mark)
+        self._count(1, mark)
+        try:
+            node = Composer.compose_node(self, parent, index)
+        finally:
+            self._depth -= 1
+        node.weight = 1 + sum(_weight(c) for c in _node_children(node))  # its size with aliases expanded
+        return node
+
+    def _count(self, n: int, mark: Any) -> None:
+        self._total += n
+        if self._total > MAX_YAML_NODES:
+            raise _limit(f"more than {MAX_YAML_NODES:,} values once aliases are expanded", mark)
+
+    def _compose_alias(self, parent: Any, index: Any) -> yaml.Node:
+        mark = self.peek_event().start_mark
+        self._aliases += 1
+        if self._aliases > MAX_YAML_ALIASES:
+            raise _limit(f"more than {MAX_YAML_ALIASES} aliases (*name)", mark)
+        node = Composer.compose_node(self, parent, index)
+        if getattr(node, "weight", None) is None:  # the anchor is still being composed
+            raise yaml.composer.ComposerError(None, None, "an alias inside its own anchor (a recursive structure)",
+                                              mark)
+        self._count(node.weight, mark)
+        return node
+
+
+if CParser is not None:
+
+    class _Loader(CParser, _LimitedComposer, SafeConstructor, Resolver):
+        """libyaml's scanner and parser (C, ~4x faster) with our composer and constructors."""
+
+        def __init__(self, stream: str):
+            CParser.__init__(self, stream)
+            _LimitedComposer.__init__(self)
+            SafeConstructor.__init__(self)
+            Resolver.__init__(self)
+
+        # CParser composes in C by default: use the Python composer (and so the limits)
+        get_single_node = Composer.get_single_node
+        compose_document = Composer.compose_document
+        check_node = Composer.check_node
+        get_node = Composer.get_node
+        compose_node = _LimitedComposer.compose_node
+
+else:  # pragma: no cover - PyYAML without libyaml
+
+    class _Loader(Reader, Scanner, Parser, _LimitedComposer, SafeConstructor, Resolver):
+        def __init__(self, stream: str):
+            Reader.__init__(self, stream)
+            Scanner.__init__(self)
+            Parser.__init__(self)
+            _LimitedComposer.__init__(self)
+            SafeConstructor.__init__(self)
+            Resolver.__init__(self)
+
+
+class _LimitError(yaml.composer.ComposerError):
+    """A limit of the loader exceeded (well-formed YAML, refused for its size)."""
+
+
+def _limit(what: str, mark: Any) -> yaml.YAMLError:
+    return _LimitError(None, None, f"config too large or too deep: {what} (the limit)", mark)
+
+
+def _node_children(node: yaml.Node) -> list:
+    if isinstance(node, yaml.SequenceNode):
+        return node.value
+    if isinstance(node, yaml.MappingNode):
+        return [n for pair in node.value for n in pair]
+    return []
+
+
+def _weight(node: yaml.Node) -> int:
+    w = getattr(node, "weight", None)
+    if w is None:
+        raise yaml.composer.ComposerError(None, None, "an alias inside its own anchor (a recursive structure)",
+                                          node.start_mark)
+    return w
 
 
 def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> LineDict:
@@ -58,6 +183,9 @@ def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> LineDict:
     d.line = node.start_mark.line + 1
     for key_node, value_node in node.value:
         key = loader.construct_object(key_node, deep=True)
+        if isinstance(key, (list, dict, set)):
+            raise yaml.constructor.ConstructorError(
+                None, None, f"a key must be a name or a number, found {type_word(key)}", key_node.start_mark)
         if key in d:
             raise yaml.constructor.ConstructorError(
                 None, None, f"duplicate key {key!r}", key_node.start_mark
@@ -78,19 +206,71 @@ _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _constru
 _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _construct_sequence)
 
 
+def type_word(value: Any) -> str:
+    """How a YAML value is named in messages (never an internal class name such as LineList)."""
+    if isinstance(value, bool):
+        return f"{str(value).lower()} (a boolean)"
+    if isinstance(value, (int, float)):
+        return "a number"
+    if isinstance(value, str):
+        return "text"
+    if isinstance(value, dict):
+        return "a mapping"
+    if isinstance(value, (list, tuple)):
+        return "a list"
+    if value is None:
+        return "nothing (null)"
+    return "a value of an unsupported type"
+
+
 def load_yaml(path: Path) -> Any:
     """Parse YAML keeping line numbers; malformed YAML is a ConfigError with its line."""
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise ConfigError.one(str(path), None, (), f"cannot read config: {e.strerror or e}") from None
+    text = _config_text(path)
     try:
         return yaml.load(text, Loader=_Loader)  # noqa: S506 - our SafeLoader subclass
+    except yaml.reader.ReaderError as e:  # a control character: no problem_mark, a character position
+        line = text.count("\n", 0, e.position) + 1
+        code = ord(e.character) if isinstance(e.character, str) else int(e.character)
+        raise ConfigError.one(str(path), line, (), f"malformed YAML: control character U+{code:04X} "
+                                                   "is not allowed") from None
+    except _LimitError as e:
+        raise ConfigError.one(str(path), e.problem_mark.line + 1, (), e.problem) from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
         line = mark.line + 1 if mark is not None else None
         problem = getattr(e, "problem", None) or str(e)
-        raise ConfigError.one(str(path), line, (), f"malformed YAML: {problem}") from None
+        raise ConfigError.one(str(path), line, (), f"malformed YAML: {clip(problem)}") from None
+    except RecursionError:  # a safety net below our depth limit (a deep stack in the caller)
+        raise ConfigError.one(str(path), None, (), "config too deep to parse") from None
+
+
+def _config_text(path: Path) -> str:
+    """The config's text: a regular file of at most MAX_CONFIG_BYTES, in UTF-8."""
+    try:
+        if path.is_dir():
+            raise ConfigError.one(str(path), None, (), "is a folder, not a config file")
+        size = path.stat().st_size
+        if size > MAX_CONFIG_BYTES:
+            raise ConfigError.one(str(path), None, (), f"config file too large ({size:,} bytes; the limit is "
+                                                       f"{MAX_CONFIG_BYTES:,})")
+        data = path.read_bytes()
+    except OSError as e:
+        raise ConfigError.one(str(path), None, (), f"cannot read config: {e.strerror or e}") from None
+    if data[:2] in (b"\xff\xfe", b"\xfe\xff"):
+        raise ConfigError.one(str(path), 1, (), "config is UTF-16 text; save it as UTF-8")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = data.count(b"\n", 0, e.start) + 1
+        col = e.start - (data.rfind(b"\n", 0, e.start) + 1) + 1
+        raise ConfigError.one(str(path), line, (), f"config is not UTF-8 text: byte 0x{data[e.start]:02x} at "
+                                                   f"column {col} (byte offset {e.start}); save it as UTF-8") from None
+
+
+def clip(text: str, limit: int = 200) -> str:
+    """One line of at most ``limit`` characters (a message quoting a 50 MB input stays short)."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[:limit] + f"... ({len(text):,} characters)"
 
 
 def line_of(root: Any, path: tuple) -> int | None:
@@ -117,14 +297,40 @@ def _message(err: dict, allowed: list[str]) -> str:
         key = str(err["loc"][-1])
         hint = difflib.get_close_matches(key, allowed, n=1)
         alts = f" (did you mean {hint[0]!r}?)" if hint else f" (allowed: {', '.join(allowed)})"
-        return f"unknown key {key!r}{alts}"
+        return f"unknown key {clip(key, 60)!r}{alts}"
+    if kind == "too_long" and ctx.get("field_type") == "Tuple":
+        return _items_message(ctx["max_length"], ctx["actual_length"])
+    if kind == "too_long":
+        return f"must have at most {ctx['max_length']} items, got {ctx['actual_length']}"
+    if kind == "int_parsing_size":
+        return "must be a smaller number (an integer of at most 19 digits)"
     ops = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
+    if isinstance(err.get("input"), bool) and (kind in ops or kind.startswith(("int_", "float_"))):
+        return "must be a number, not true/false"  # pydantic read it as 1 or 0 and then refused it
     if kind in ops:
         bound = next(iter(ctx.values()))
         return f"must be {ops[kind]} {bound}"
     msg = err["msg"]
     msg = msg.removeprefix("Value error, ").removeprefix("Assertion failed, ")
-    return msg.replace("Input should be", "must be")
+    return clip(msg.replace("Input should be", "must be"), 300)
+
+
+def _items_message(want: int, got: int) -> str:
+    if want == 3:
+        return f"must be three numbers [x, y, z], got {got}"
+    return f"must be a list of {want} items, got {got}"
+
+
+def _short_tuples(errors: list[dict]) -> dict[tuple, tuple[int, int]]:
+    """Fixed-length lists given too few items: pydantic reports each missing index as a
+    missing key (``max[2]: missing required key``); map the list's location to (want, got)."""
+    out: dict[tuple, tuple[int, int]] = {}
+    for err in errors:
+        loc = err["loc"]
+        if err["type"] == "missing" and loc and isinstance(loc[-1], int) and isinstance(err.get("input"), list):
+            want = max(loc[-1] + 1, out.get(loc[:-1], (0, 0))[0])
+            out[loc[:-1]] = (want, len(err["input"]))
+    return out
 
 
 def _clean_loc(loc: tuple) -> tuple:
@@ -139,17 +345,44 @@ def validation_problems(exc: ValidationError, file: str, root: Any, base: tuple,
                         strip: str | None = None) -> list:
     allowed = sorted({(f.alias or n) for n, f in model.model_fields.items()})
     seen, problems = set(), []
-    for err in exc.errors():
-        loc = _clean_loc(err["loc"])
+    errors = exc.errors()
+    short = _short_tuples(errors)
+    for err in errors:
+        raw_loc = err["loc"][:-1] if err["loc"] and err["loc"][:-1] in short else err["loc"]
+        loc = _clean_loc(raw_loc)
         if strip and loc and loc[0] == strip:
             loc = loc[1:]
         path = base + loc
-        msg = _message(err, allowed)
+        msg = _items_message(*short[raw_loc]) if raw_loc in short else _message(err, allowed)
         if (path, msg) in seen or any(p[2] == path for p in problems):
             continue  # one message per path (unions produce one error per member)
         seen.add((path, msg))
         problems.append((file, line_of(root, path), path, msg))
     return problems
+
+
+def coerced_booleans(raw: Any, value: Any, path: tuple = ()) -> list[tuple]:
+    """Paths where YAML ``true``/``false`` was accepted as a number (pydantic's lax mode reads
+    true as 1 and 1.0): a boolean is not a number anywhere in a config. ``raw`` is the YAML
+    value, ``value`` what validation made of it."""
+    if isinstance(raw, bool):
+        return [] if isinstance(value, bool) or value is raw else [path]
+    if isinstance(raw, dict) and isinstance(value, BaseModel):
+        keys = {(f.alias or n): n for n, f in type(value).model_fields.items()}
+        return [p for k, v in raw.items() if k in keys
+                for p in coerced_booleans(v, getattr(value, keys[k]), path + (k,))]
+    if isinstance(raw, dict) and isinstance(value, dict):
+        return [p for k, v in raw.items() if k in value for p in coerced_booleans(v, value[k], path + (k,))]
+    if isinstance(raw, list) and isinstance(value, (list, tuple)) and len(raw) == len(value):
+        return [p for i, (r, v) in enumerate(zip(raw, value, strict=True)) for p in coerced_booleans(r, v, path + (i,))]
+    return []
+
+
+def boolean_problems(raw: Any, value: Any, file: str, root: Any, base: tuple) -> ConfigError | None:
+    paths = coerced_booleans(raw, value)
+    if not paths:
+        return None
+    return ConfigError([(file, line_of(root, base + p), base + p, "must be a number, not true/false") for p in paths])
 
 
 # --- model tree --------------------------------------------------------------------------------
@@ -200,6 +433,9 @@ def build_node(raw: Any, path: tuple, ctx: _Ctx) -> Node:
         params = cls.Params.model_validate(body)
     except ValidationError as e:
         raise ConfigError(validation_problems(e, ctx.file, ctx.root, here, cls.Params, strip)) from None
+    bad = None if strip else boolean_problems(body, params, ctx.file, ctx.root, here)
+    if bad:
+        raise bad
     job_args = {"domain": ctx.domain, "t": ctx.t} if getattr(cls, "uses_domain", False) else {}
     try:
         return cls(params, where=format_path(here), **job_args)
@@ -223,7 +459,7 @@ def _normalise_body(cls: type[Node], body: Any, path: tuple, ctx: _Ctx) -> tuple
     if body is None:
         return {}, None
     if not isinstance(body, dict):
-        raise ctx.fail(path, f"parameters of {cls.kind} must be a mapping, got {type(body).__name__}")
+        raise ctx.fail(path, f"parameters of {cls.kind} must be a mapping, got {type_word(body)}")
     out = dict(body)
     if "path" in out and isinstance(out["path"], str):  # file inputs are relative to the config
         p = Path(out["path"]).expanduser()
@@ -233,6 +469,9 @@ def _normalise_body(cls: type[Node], body: Any, path: tuple, ctx: _Ctx) -> tuple
 
 def _build_children(value: Any, path: tuple, ctx: _Ctx):
     if isinstance(value, list):
+        if len(value) > MAX_CHILDREN:
+            raise ctx.fail(path, f"more than {MAX_CHILDREN:,} children in one node (the limit); "
+                                 "split the list into nested unions")
         return [build_node(item, path + (i,), ctx) for i, item in enumerate(value)]
     return build_node(value, path, ctx)
 
@@ -246,8 +485,9 @@ class _Strict(BaseModel):
 
 class DomainConfig(_Strict):
     bounds: tuple[Vec3, Vec3]
-    voxel_size: float | None = Field(default=None, gt=0)
-    resolution: int | None = Field(default=None, gt=0)
+    voxel_size: Real | None = Field(default=None, gt=0)
+    #: voxels along the longest side; OpenVDB's index coordinates are 32-bit
+    resolution: int | None = Field(default=None, gt=0, le=MAX_INDEX)
 
     @model_validator(mode="after")
     def _check(self):
@@ -262,8 +502,16 @@ class DomainConfig(_Strict):
 class FramesConfig(_Strict):
     """A sweep of the model's time parameter: ``count`` frames from t[0] to t[1]."""
 
-    count: int = Field(ge=1, le=100000)
-    t: tuple[float, float] = (0.0, 1.0)
+    count: int = Field(ge=1)
+    t: tuple[Real, Real] = (0.0, 1.0)
+
+    @field_validator("count")
+    @classmethod
+    def _at_most(cls, v: int) -> int:
+        if v > MAX_FRAMES:
+            raise ValueError(f"at most {MAX_FRAMES:,} frames per config (the limit), got {v:,}; "
+                             "split the sweep over several configs")
+        return v
 
 
 class ExecutorConfig(_Strict):
@@ -363,6 +611,17 @@ class Job:
     name_line: int | None = None  # line of its ``name:`` key (None: the name is the file's stem)
 
 
+def _check_top_keys(root: dict, file: str) -> None:
+    """Unknown top-level keys are refused before any validation: a mistyped key over a huge
+    value costs nothing then."""
+    allowed = sorted({(f.alias or n) for n, f in TopConfig.model_fields.items()})
+    unknown = [k for k in root if k not in allowed]
+    if unknown:
+        key = unknown[0]
+        msg = _message({"type": "extra_forbidden", "loc": (str(key),)}, allowed)
+        raise ConfigError.one(file, line_of(root, (key,)), (clip(str(key), 60),), msg)
+
+
 def load_jobs(path: str | Path, select: str | None = None) -> list[Job]:
     """Load and validate a config file into its jobs (one, a ``jobs:`` list, times ``frames``).
 
@@ -372,10 +631,14 @@ def load_jobs(path: str | Path, select: str | None = None) -> list[Job]:
     root = load_yaml(path)
     if not isinstance(root, dict):
         raise ConfigError.one(file, getattr(root, "line", 1), (), "a config is a mapping (name, domain, model, stages)")
+    _check_top_keys(root, file)
     try:
         top = TopConfig.model_validate(root)
     except ValidationError as e:
         raise ConfigError(validation_problems(e, file, root, (), TopConfig)) from None
+    bad = boolean_problems(root, top, file, root, ())
+    if bad:
+        raise bad
     ctx = _Ctx(file, root, path.resolve().parent)
     sha = hashlib.sha256(path.read_bytes()).hexdigest()
     if top.jobs is None and not top.name and job_name_problem(path.stem):
@@ -387,8 +650,7 @@ def load_jobs(path: str | Path, select: str | None = None) -> list[Job]:
     for i, name, dom, model_raw, stages_raw, t in entries:
         base = () if i is None else ("jobs", i)
         jobs.extend(_entry_jobs(ctx, top, sha, base, i or 0, name, dom, model_raw, stages_raw, t, select))
-    names = [j.name for j in jobs]
-    dup = sorted({n for n in names if names.count(n) > 1})
+    dup = sorted(n for n, k in Counter(j.name for j in jobs).items() if k > 1)
     if dup:
         raise ctx.fail(("jobs",), f"job names must be unique (outputs go to <out>/<name>/): {dup}")
     return jobs
@@ -458,11 +720,14 @@ def _domain(d: DomainConfig, ctx: _Ctx, base: tuple = ()) -> Domain:
     lo, hi = d.bounds
     extent = max(b - a for a, b in zip(lo, hi, strict=True))
     h = d.voxel_size if d.voxel_size is not None else extent / d.resolution
-    dom = Domain((tuple(lo), tuple(hi)), float(h))
-    if np.abs(np.concatenate([dom.index_min, dom.index_max])).max() >= MAX_INDEX:
+    # in floating point, before any conversion to integers (a huge quotient would wrap around)
+    reach = max(abs(c) for c in (*lo, *hi)) / h if h > 0 else math.inf
+    if not reach < MAX_INDEX:
         key = "voxel_size" if d.voxel_size is not None else "resolution"
-        raise ctx.fail(base + ("domain", key), f"index coordinates exceed OpenVDB's 32-bit range (voxel size {h:g})")
-    return dom
+        raise ctx.fail(base + ("domain", key), f"index coordinates exceed OpenVDB's 32-bit range (voxel size {h:g}, "
+                                               f"bounds reach {reach:.3g} voxels from the origin; the limit is "
+                                               f"{MAX_INDEX:,})")
+    return Domain((tuple(lo), tuple(hi)), float(h))
 
 
 def _stages(raw: list, ctx: _Ctx, base: tuple = ("stages",)) -> list[tuple[str, Any]]:
@@ -483,6 +748,9 @@ def _stages(raw: list, ctx: _Ctx, base: tuple = ("stages",)) -> list[tuple[str, 
             params = model.model_validate(body or {})
         except ValidationError as e:
             raise ConfigError(validation_problems(e, ctx.file, ctx.root, path + (name,), model)) from None
+        bad = boolean_problems(body or {}, params, ctx.file, ctx.root, path + (name,))
+        if bad:
+            raise bad
         out.append((name, params))
     names = [n for n, _ in out]
     for i, n in enumerate(names):
@@ -490,7 +758,37 @@ def _stages(raw: list, ctx: _Ctx, base: tuple = ("stages",)) -> list[tuple[str, 
         missing = [r for r in needs if r not in names[:i]]
         if missing:
             raise ctx.fail(base + (i, n), f"needs the {', '.join(missing)} stage before it")
+    _check_grid_names(out, ctx, base)
     return out
+
+
+def _grids_made(name: str, params: Any) -> list[str]:
+    """Names of the grids a stage adds (stages/*.py ``run``: ctx.grids[...] = ...)."""
+    if name == "voxelise":
+        return ["frep"]
+    if name == "components":
+        return ["component"]
+    if name == "hfrep":
+        return ["surface", "hfrep", *(["density"] if params.density else []), *(a.name for a in params.attributes)]
+    return []
+
+
+def _check_grid_names(stages: list[tuple[str, Any]], ctx: _Ctx, base: tuple) -> None:
+    """Grid names that export refers to must be made by a stage before it (else the run would
+    fail after the expensive stages, or silently write less)."""
+    made: list[str] = []
+    for i, (name, params) in enumerate(stages):
+        if name == "export":
+            written = made if params.grids is None else [g for g in made if g in params.grids]
+            for key, names, known in (("grids", params.grids, made), ("half_float", params.half_float, written)):
+                if not isinstance(names, list):
+                    continue
+                for j, g in enumerate(names):
+                    if g not in known:
+                        why = (f"no stage before export makes a grid named {clip(g, 60)!r}" if g not in made
+                               else f"grid {g!r} is not in export.grids, so it is not written")
+                        raise ctx.fail(base + (i, name, key, j), f"{why} (grids here: {', '.join(known) or 'none'})")
+        made.extend(_grids_made(name, params))
 
 
 def _normalised(job: Job, model_raw: Any) -> dict:
@@ -514,13 +812,19 @@ def _to_plain(x: Any) -> Any:
 def _check_model_values(job: Job, ctx: _Ctx) -> None:
     """Evaluate the model on a coarse lattice of the domain; NaN or inf is a config error that
     names the deepest node where it first appears (e.g. a formula dividing by zero)."""
-    lo, hi = (np.asarray(b, float) for b in job.domain.bounds)
-    n = 17
-    axes = [np.linspace(lo[i], hi[i], n) for i in range(3)]
-    pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    err = locate_nonfinite(job, pts)
+    err = locate_nonfinite(job, _check_points(job.domain.bounds))
     if err is not None:
         raise err
+
+
+@functools.lru_cache(maxsize=16)
+def _check_points(bounds: tuple) -> np.ndarray:
+    """17^3 lattice points of the domain (cached: every frame of a sweep shares its domain)."""
+    lo, hi = (np.asarray(b, float) for b in bounds)
+    axes = [np.linspace(lo[i], hi[i], 17) for i in range(3)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    pts.flags.writeable = False
+    return pts
 
 
 def locate_nonfinite(job: Job, pts: np.ndarray) -> ConfigError | None:
@@ -553,29 +857,39 @@ def _parse_path(s: str) -> list:
 
 
 HFREP_BYTES_PER_VOXEL = 30  # measured peak of the hfrep stage per interior voxel (docs/performance.md)
+ROOT_CELL_BYTES = 160  # per top-level cell of the enumeration: its index arrays, boxes and bounds
 
 
 def _check_memory(job: Job, ctx: _Ctx, base: tuple = ()) -> None:
     """Refuse a domain whose grids would not fit in this machine's memory (estimates): the
-    narrow band of voxelise, and the interior that the hfrep stage solves completely."""
-    from pipeline.voxelise import estimate_band_bytes, estimate_interior_voxels
+    top-level cells every voxelisation enumerates, the narrow band of voxelise, and the
+    interior that the hfrep stage solves completely."""
+    from pipeline.voxelise import estimate_band_bytes, estimate_interior_voxels, root_size_for
 
     voxelise = next((p for n, p in job.stages if n == "voxelise"), None)
     if voxelise is None or job.domain.dims.max() < 1024:
         return  # small domains always fit
+    avail = _available_memory()
+    # the estimates below enumerate these cells themselves: check their count first, in floats
+    roots = float(np.prod(np.ceil(job.domain.dims / root_size_for(job.domain.dims, voxelise.block)) + 1))
+    if roots * ROOT_CELL_BYTES > avail:
+        _refuse_memory(job, ctx, base, roots * ROOT_CELL_BYTES, f"the {roots:.3g} top-level cells of voxelise", avail)
     need = estimate_band_bytes(job.model, job.domain, voxelise.band, job.t)
     what = "its narrow band"
     if any(n == "hfrep" for n, _ in job.stages):
         need += HFREP_BYTES_PER_VOXEL * estimate_interior_voxels(job.model, job.domain, voxelise.band, job.t)
         what = "its narrow band and the interior distance of the hfrep stage"
-    avail = _available_memory()
     if need > avail:
-        local = _at(job.raw, base + ("domain",))
-        raw_dom = local or job.raw.get("domain", {})
-        key = "voxel_size" if "voxel_size" in raw_dom else "resolution"
-        where = (base if local else ()) + ("domain", key)
-        raise ctx.fail(where, f"this domain needs an estimated {need / 2**30:.1f} GiB for {what}; "
-                              f"this machine has {avail / 2**30:.1f} GiB available")
+        _refuse_memory(job, ctx, base, need, what, avail)
+
+
+def _refuse_memory(job: Job, ctx: _Ctx, base: tuple, need: float, what: str, avail: float) -> None:
+    local = _at(job.raw, base + ("domain",))
+    raw_dom = local or job.raw.get("domain", {})
+    key = "voxel_size" if "voxel_size" in raw_dom else "resolution"
+    where = (base if local else ()) + ("domain", key)
+    raise ctx.fail(where, f"this domain needs an estimated {need / 2**30:.3g} GiB for {what}; "
+                          f"this machine has {avail / 2**30:.1f} GiB available")
 
 
 def _at(root: Any, path: tuple) -> Any:
@@ -589,12 +903,17 @@ def _at(root: Any, path: tuple) -> Any:
 
 
 def _available_memory() -> int:
+    """Free memory, or the process's address-space limit (ulimit -v) when that is smaller."""
+    import resource
+
     try:
         import psutil
 
-        return int(psutil.virtual_memory().available)
+        avail = int(psutil.virtual_memory().available)
     except ImportError:  # pragma: no cover
         with open("/proc/meminfo") as f:
             info = dict(line.split(":", 1) for line in f)
-        return int(info["MemAvailable"].split()[0]) * 1024
+        avail = int(info["MemAvailable"].split()[0]) * 1024
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    return avail if soft == resource.RLIM_INFINITY else min(avail, soft)
 

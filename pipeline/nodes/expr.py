@@ -16,6 +16,11 @@ more arguments) and pow(a, b). The parsed nodes are ordinary nodes with a ``fiel
 formulas get evaluation and affine bounds from the same machinery as every other node.
 Constant sub-expressions are folded; a constant division by zero or a constant that is not
 finite is a parse error.
+
+Limits: a formula is at most MAX_FORMULA_LENGTH characters and nests at most
+MAX_FORMULA_DEPTH levels (parentheses, function calls, exponents). Sums and products are
+n-ary nodes and runs of unary signs collapse, so a long formula evaluates without deep
+recursion: 1,000 terms are one node with 1,000 children.
 """
 
 from __future__ import annotations
@@ -44,6 +49,12 @@ class FormulaError(ValueError):
 _TOKEN = re.compile(r"\s*(?:(\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?)|([A-Za-z_]\w*)|(\S))")
 _FUNCS = {"sqrt": 1, "exp": 1, "log": 1, "sin": 1, "cos": 1, "abs": 1, "min": -2, "max": -2, "pow": 2}
 _CONSTS = {"pi": math.pi, "e": math.e}
+
+#: characters of one formula
+MAX_FORMULA_LENGTH = 20_000
+#: nesting of parentheses, function calls and exponents (the parser and the evaluation recurse
+#: per level, a few Python frames each)
+MAX_FORMULA_DEPTH = 60
 
 
 @dataclass
@@ -103,14 +114,29 @@ class Param(_ExprNode):
 class BinOp(_ExprNode):
     def field(self, x, y, z, t):
         op, a, b = self.args
-        fa, fb = a.field(x, y, z, t), b.field(x, y, z, t)
-        if op == "+":
-            return fa + fb
-        if op == "-":
-            return fa - fb
-        if op == "*":
-            return fa * fb
-        return ops.div(fa, fb)
+        return _apply(op, a.field(x, y, z, t), b.field(x, y, z, t))
+
+
+class Chain(_ExprNode):
+    """a op1 b op2 c ...: a left-to-right run of + and - (or of * and /) as one node, so that a
+    formula of many terms is one level deep; args: the first operand, then (op, operand) pairs."""
+
+    def field(self, x, y, z, t):
+        first, rest = self.args
+        acc = first.field(x, y, z, t)
+        for op, node in rest:
+            acc = _apply(op, acc, node.field(x, y, z, t))
+        return acc
+
+
+def _apply(op: str, a: Any, b: Any) -> Any:
+    if op == "+":
+        return a + b
+    if op == "-":
+        return a - b
+    if op == "*":
+        return a * b
+    return ops.div(a, b)
 
 
 class Neg(_ExprNode):
@@ -150,9 +176,19 @@ class Func(_ExprNode):
 
 class _Parser:
     def __init__(self, src: str, variables: dict[str, Any] | None = None):
+        if len(src) > MAX_FORMULA_LENGTH:
+            raise FormulaError(f"formula too long: {len(src):,} characters (the limit is {MAX_FORMULA_LENGTH:,})",
+                               MAX_FORMULA_LENGTH + 1)
         self.toks = _tokenise(src)
         self.i = 0
         self.variables = variables
+        self.depth = 0
+
+    def nested(self, tok: _Tok) -> None:
+        """Enter one nesting level (a parenthesis, a call, an exponent); the caller leaves it."""
+        self.depth += 1
+        if self.depth > MAX_FORMULA_DEPTH:
+            raise FormulaError(f"formula nested deeper than {MAX_FORMULA_DEPTH} levels (the limit)", tok.col)
 
     @property
     def tok(self) -> _Tok:
@@ -175,34 +211,40 @@ class _Parser:
         return node
 
     def expr(self) -> Node:
-        node = self.term()
-        while self.tok.text in ("+", "-"):
-            op = self.take()
-            node = _fold(BinOp(op.text, node, self.term()), op.col)
-        return node
+        return self.chain(("+", "-"), self.term)
 
     def term(self) -> Node:
-        node = self.unary()
-        while self.tok.text in ("*", "/"):
+        return self.chain(("*", "/"), self.unary)
+
+    def chain(self, opers: tuple[str, str], operand) -> Node:
+        """operand (op operand)* as one Chain node, constants folded left to right."""
+        first, first_col, rest = operand(), self.tok.col, []
+        while self.tok.text in opers:
             op = self.take()
-            rhs = self.unary()
+            rhs = operand()
             if op.text == "/" and isinstance(rhs, Const) and rhs.args[0] == 0:
                 raise FormulaError("division by zero", op.col)
-            node = _fold(BinOp(op.text, node, rhs), op.col)
-        return node
+            if not rest and isinstance(first, Const) and isinstance(rhs, Const):
+                first = _fold(BinOp(op.text, first, rhs), op.col)  # a constant prefix stays one constant
+            else:
+                rest.append((op.text, rhs))
+        return first if not rest else _fold(Chain(first, rest), first_col)
 
     def unary(self) -> Node:
-        if self.tok.text in ("-", "+"):
-            op = self.take()
-            inner = self.unary()
-            return inner if op.text == "+" else _fold(Neg(inner), op.col)
-        return self.power()
+        """A run of signs, counted rather than recursed into (``- - - x`` is ``-x``)."""
+        negate, col = False, self.tok.col
+        while self.tok.text in ("-", "+"):
+            negate ^= self.take().text == "-"
+        inner = self.power()
+        return _fold(Neg(inner), col) if negate else inner
 
     def power(self) -> Node:
         node = self.atom()
         if self.tok.text == "^":
             op = self.take()
+            self.nested(op)
             node = _fold(Pow(node, self.unary()), op.col)
+            self.depth -= 1
         return node
 
     def atom(self) -> Node:
@@ -210,8 +252,10 @@ class _Parser:
         if tok.kind == "num":
             return Const(float(tok.text))
         if tok.text == "(":
+            self.nested(tok)
             node = self.expr()
             self.take(")")
+            self.depth -= 1
             return node
         if tok.kind == "name":
             return self.name(tok)
@@ -230,11 +274,13 @@ class _Parser:
             known = ", ".join(["x", "y", "z", "t", *(self.variables or ()), *_CONSTS, *_FUNCS])
             raise FormulaError(f"unknown name {n!r} (known: {known})", tok.col)
         self.take("(")
+        self.nested(tok)
         args = [self.expr()]
         while self.tok.text == ",":
             self.take()
             args.append(self.expr())
         self.take(")")
+        self.depth -= 1
         want = _FUNCS[n]
         if (want > 0 and len(args) != want) or (want < 0 and len(args) < -want):
             need = f"{want}" if want > 0 else f"at least {-want}"
@@ -247,6 +293,8 @@ def _fold(node: Node, col: int) -> Node:
     kids = [a for a in node.args if isinstance(a, Node)] + [
         a for arg in node.args if isinstance(arg, list) for a in arg
     ]
+    if isinstance(node, Chain):
+        kids = [node.args[0]] + [n for _, n in node.args[1]]
     if not kids or not all(isinstance(k, Const) for k in kids):
         return node
     if isinstance(node, BinOp) and node.args[0] == "/" and node.args[2].args[0] == 0:

@@ -11,6 +11,7 @@ warning, because section 4.2 of the paper converts incomplete meshes too.
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,21 +46,62 @@ def _fail(path: Path, why: str) -> MeshError:
 
 
 def _read(path: Path) -> trimesh.Trimesh:
-    """Load ``path`` as one triangle mesh (scenes are concatenated), or raise MeshError."""
+    """Load ``path`` as one triangle mesh (scenes are concatenated), or raise MeshError.
+
+    The bytes are read here and handed to trimesh: text formats that are not UTF-8 (a Latin-1
+    byte in a comment) are transcoded first, since trimesh's own fallback needs an encoding
+    detector. A file trimesh cannot parse, or that parses to nothing, is "not a mesh"."""
+    if path.is_dir():
+        raise _fail(path, "is a folder, not a mesh file")
     if not path.is_file():
         raise _fail(path, "mesh file not found")
     if path.suffix.lower() not in SUFFIXES:
         raise _fail(path, f"unsupported mesh format {path.suffix!r} (use {', '.join(SUFFIXES)})")
-    if path.stat().st_size == 0:
-        raise _fail(path, "mesh file is empty")
     try:
-        loaded = trimesh.load(str(path), force="mesh", process=True)
+        data = path.read_bytes()
+    except OSError as exc:
+        raise _fail(path, f"cannot read mesh file ({exc.strerror or exc})") from None
+    if not data:
+        raise _fail(path, "mesh file is empty")
+    kind = path.suffix.lower()[1:]
+    try:
+        # process=False: checked first, processed after (processing drops NaN vertices silently)
+        loaded = trimesh.load(io.BytesIO(_as_utf8(data, kind)), file_type=kind, force="mesh", process=False,
+                              resolver=trimesh.resolvers.FilePathResolver(str(path)))
     except Exception as exc:  # trimesh raises many exception types on bad input
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise _fail(path, f"cannot read mesh ({msg})") from exc
-    if not isinstance(loaded, trimesh.Trimesh):
-        raise _fail(path, "file holds no triangle mesh")
+        raise _fail(path, f"not a mesh: this .{kind} file does not parse ({_clip(msg)})") from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.vertices) == 0:
+        raise _fail(path, f"not a mesh: no vertices and no faces could be read from this .{kind} file")
+    _check_coordinates(loaded, path)
+    loaded.process()  # what process=True does: merge vertices so that shared edges are seen
     return loaded
+
+
+def _clip(text: str, limit: int = 160) -> str:
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+def _as_utf8(data: bytes, kind: str) -> bytes:
+    """Text meshes as UTF-8: bytes that are not UTF-8 are read as Latin-1 (every byte is a
+    character; the numbers and keywords are ASCII either way). Binary STL/PLY stay as they are."""
+    if not _is_text(data, kind):
+        return data
+    try:
+        data.decode("utf-8")
+        return data
+    except UnicodeDecodeError:
+        return data.decode("latin-1").encode("utf-8")
+
+
+def _is_text(data: bytes, kind: str) -> bool:
+    if kind == "stl":  # binary: an 80-byte header, a face count, 50 bytes per face
+        binary = len(data) >= 84 and len(data) == 84 + 50 * int.from_bytes(data[80:84], "little")
+        return not binary and data.lstrip()[:5].lower() == b"solid"
+    if kind == "ply":
+        return b"format ascii" in data[:data.find(b"end_header")] if b"end_header" in data else False
+    return True  # OBJ, OFF
 
 
 def component_genus(mesh: trimesh.Trimesh) -> list[int]:
@@ -125,3 +167,23 @@ def load_mesh(path: str | Path) -> tuple[trimesh.Trimesh, MeshReport]:
     if len(mesh.vertices) == 0 or len(mesh.faces) == 0:
         raise _fail(p, "mesh has no faces")
     return mesh, check_mesh(mesh, str(p))
+
+
+#: largest vertex coordinate: beyond it squared distances and plane equations of the BSP-field
+#: lose every digit of a voxel-sized detail (and 1e30 squared overflows float32 arithmetic)
+MAX_MESH_COORDINATE = 1e12
+
+
+def _check_coordinates(mesh: trimesh.Trimesh, path: Path) -> None:
+    """A mesh with problems (as distinct from a file that is not a mesh): NaN or infinite
+    vertices, or coordinates too large to compute with."""
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise _fail(path, f"mesh with problems: {int(bad.sum())} vertices are not finite numbers (NaN or inf), "
+                          f"the first is vertex {first}")
+    big = float(np.abs(v).max())
+    if big > MAX_MESH_COORDINATE:
+        raise _fail(path, f"mesh with problems: a vertex coordinate of {big:.3g} is beyond the limit of "
+                          f"{MAX_MESH_COORDINATE:g}; scale the mesh to the model's units")

@@ -90,35 +90,48 @@ def cmd_validate(args) -> int:
     from pipeline.config import load_jobs
 
     jobs = load_jobs(args.config)
-    print(yaml.safe_dump_all([j.normalised for j in jobs], sort_keys=False), end="")
+    # libyaml's emitter when present: a frames sweep prints thousands of documents
+    dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
+    print(yaml.dump_all([j.normalised for j in jobs], Dumper=dumper, sort_keys=False), end="")
     return EXIT_OK
 
 
 def cmd_info(args) -> int:
-    from pipeline.vdbinfo import describe_vdb
+    from pipeline.vdbinfo import describe_vdb_isolated
 
     try:
-        print(describe_vdb(args.file))
+        print(describe_vdb_isolated(args.file), end="")
     except (OSError, ValueError) as e:
-        print(f"error: {args.file}: {e}", file=sys.stderr)
+        print(f"error: {_one_line(e)}", file=sys.stderr)
         return EXIT_INPUT
     return EXIT_OK
 
 
+#: finest collision octree: ``--tolerance`` at most this many halvings of the common box
+COLLIDE_MAX_DEPTH = 20
+
+
 def cmd_collide(args) -> int:
     """components seed, section 5: collision iff the intersection has a component."""
+    import math
+
     import numpy as np
 
-    from pipeline.components import collide
+    from pipeline.components import collide, depth_for
     from pipeline.config import load_job
 
-    a, b = load_job(args.a), load_job(args.b)
-    tol = args.tolerance or min(a.domain.voxel_size, b.domain.voxel_size)
-    if not tol > 0:
-        print("error: --tolerance must be > 0", file=sys.stderr)
+    if args.tolerance is not None and not (math.isfinite(args.tolerance) and args.tolerance > 0):
+        print(f"error: --tolerance must be a finite number > 0, got {args.tolerance:g}", file=sys.stderr)
         return EXIT_INPUT
+    a, b = load_job(args.a), load_job(args.b)
+    tol = args.tolerance if args.tolerance is not None else min(a.domain.voxel_size, b.domain.voxel_size)
     lo = np.maximum(np.asarray(a.domain.bounds[0]), np.asarray(b.domain.bounds[0]))
     hi = np.minimum(np.asarray(a.domain.bounds[1]), np.asarray(b.domain.bounds[1]))
+    size = float((hi - lo).max())
+    if size > 0 and depth_for(size, tol) > COLLIDE_MAX_DEPTH:
+        print(f"error: --tolerance {tol:g} is finer than the limit ({size / 2**COLLIDE_MAX_DEPTH:.3g}: the common "
+              f"box of {size:g} halved {COLLIDE_MAX_DEPTH} times)", file=sys.stderr)
+        return EXIT_INPUT
     res = collide(a.model, b.model, (lo, hi), tol, a.t, b.t)
     print(f"collision: {'yes' if res.collide else 'no'}")
     print(f"tolerance: {res.tolerance:g} (octree depth {res.depth}, {res.count} component(s) in the intersection)")

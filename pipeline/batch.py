@@ -123,6 +123,10 @@ class LocalExecutor(Executor):
         return f"local process pool, {self.workers} workers"
 
 
+#: seconds to wait for an existing Dask scheduler (``--scheduler``) to answer
+SCHEDULER_TIMEOUT = 5.0
+
+
 class DaskExecutor(Executor):
     """Dask distributed: an existing scheduler, or a LocalCluster of worker processes."""
 
@@ -131,7 +135,12 @@ class DaskExecutor(Executor):
 
         self.cluster = None
         if scheduler:
-            self.client = Client(scheduler)
+            try:  # an address nobody answers is bad input: a few seconds, then one line and exit 2
+                self.client = Client(scheduler, timeout=SCHEDULER_TIMEOUT)
+            except (OSError, TimeoutError, ValueError, TypeError) as e:
+                why = " ".join(str(e).split())[:160] or type(e).__name__
+                raise ConfigError.one(f"--scheduler {scheduler}", None, (), f"cannot reach the Dask scheduler within "
+                                      f"{SCHEDULER_TIMEOUT:g} s ({why})") from None
         else:
             self.cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
                                         processes=True, dashboard_address=None)

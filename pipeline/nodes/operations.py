@@ -85,6 +85,7 @@ class Blend(Node):
         rfunc: RFunc = "r0"
 
     child_fields = ("of",)
+    list_field = "of"  # blend: [a, b] like union: [a, b]
 
     def field(self, x, y, z, t):
         p = self.params

@@ -19,7 +19,8 @@ if [ ${#need_apt[@]} -gt 0 ]; then
 setup: OpenVDB's Python module is not importable and apt-get is not available.
   On Debian/Ubuntu:  apt-get install python3-openvdb python3-venv
   Elsewhere:         conda install -c conda-forge openvdb   (the module is named 'openvdb' there)
-  then create .venv from that Python with --system-site-packages and run: pip install -e '.[dev]' 'numpy<2'
+  then create .venv from that Python with --system-site-packages and run: pip install -e '.[dev]'
+  with NumPy on the major version that OpenVDB's module was built against (e.g. 'numpy==1.*')
 MSG
     exit 1
   fi
@@ -31,6 +32,16 @@ MSG
   }
 fi
 
+# The system's OpenVDB module is built against the system's NumPy; the venv sees the system's
+# packages, so pip must keep NumPy on that major version (an extension built against NumPy 1.x
+# runs on any later 1.x, not on 2.x).
+SYS_NUMPY=$("$SYS_PY" -c "import numpy; print(numpy.__version__)" 2>/dev/null) || {
+  echo "setup: $SYS_PY cannot import numpy; install python3-numpy (OpenVDB's Python module needs it)" >&2
+  exit 1
+}
+SYS_NUMPY_MAJOR=${SYS_NUMPY%%.*}
+NUMPY_PIN="numpy==${SYS_NUMPY_MAJOR}.*"
+
 if [ ! -x .venv/bin/python ]; then
   echo "setup: creating .venv from $SYS_PY --system-site-packages"
   "$SYS_PY" -m venv --system-site-packages .venv
@@ -38,15 +49,23 @@ fi
 
 stamp=.venv/.frepvdb-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-  echo "setup: pip install -e .[dev] (numpy<2)"
+  echo "setup: pip install -e .[dev] ($NUMPY_PIN, the major version of the system's NumPy $SYS_NUMPY)"
   .venv/bin/python -m pip install --quiet --upgrade pip
-  .venv/bin/python -m pip install --quiet -e '.[dev]' 'numpy<2'
+  .venv/bin/python -m pip install --quiet -e '.[dev]' "$NUMPY_PIN"
   touch "$stamp"
+fi
+VENV_NUMPY=$(.venv/bin/python -c "import numpy; print(numpy.__version__)") || {
+  echo "setup: .venv cannot import numpy (see above)" >&2; exit 1; }
+if [ "${VENV_NUMPY%%.*}" != "$SYS_NUMPY_MAJOR" ]; then
+  cat >&2 <<MSG
+setup: .venv has NumPy $VENV_NUMPY but the system's OpenVDB module is built against NumPy $SYS_NUMPY;
+  they must share the major version. Fix: .venv/bin/python -m pip install '$NUMPY_PIN'
+MSG
+  exit 1
 fi
 .venv/bin/python -c "import numpy, pipeline
 try:
     import openvdb as vdb
 except ImportError:
     import pyopenvdb as vdb
-assert int(numpy.__version__.split('.')[0]) < 2, numpy.__version__
 " || { echo "setup: the environment does not import (see above)" >&2; exit 1; }

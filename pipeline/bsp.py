@@ -47,6 +47,7 @@ from scipy.optimize import linprog
 from pipeline.rfunctions import FAMILIES, SARDF_K
 
 FAMILY_CODE = {name: i for i, name in enumerate(FAMILIES)}  # min_max 0, r0 1, sardf 2
+R0_SCALE = 2.0  # magnitude control of r0/sardf, in mesh diagonals (see BSPField.magnitude_scale)
 
 # node modes of the compiled tree
 LEAF, POS_ONLY, NEG_ONLY, GENERAL, SPECIAL_B, SPECIAL_C = range(6)
@@ -57,49 +58,60 @@ MODE_OPS = np.array([0, 1, 1, 4, 2, 2])  # binary R-functions per node mode
 
 
 @njit(cache=True)
-def nb_and(f1: float, f2: float, fam: int, k: float) -> float:
-    """R-conjunction; Numba twin of :func:`pipeline.rfunctions.r_and` (eq. 1, eq. 2, SARDF)."""
+def nb_compress(f: float, c: float) -> float:
+    """Twin of :func:`pipeline.rfunctions.compress`: identity for |f| <= c, log growth beyond."""
+    a = abs(f)
+    if a <= c:
+        return f
+    r = c * (1.0 + np.log(a / c))
+    return r if f > 0 else -r
+
+
+@njit(cache=True)
+def nb_and(f1: float, f2: float, fam: int, k: float, c: float) -> float:
+    """R-conjunction; Numba twin of :func:`pipeline.rfunctions.r_and` (eq. 1, eq. 2, SARDF),
+    with the magnitude control ``c`` of r0 and sardf."""
     if fam == 0:
         return min(f1, f2)
     if fam == 1:  # cancellation-free form, see pipeline.rfunctions.r_and
         s = f1 + f2
         rho = np.hypot(f1, f2)
-        return 2.0 * f1 * f2 / (s + rho) if s > 0 else s - rho
+        return nb_compress(2.0 * f1 * f2 / (s + rho) if s > 0 else s - rho, c)
     rho = np.hypot(f1, f2)
     u = f1 - f2
     w = k * rho
-    if abs(u) >= w:
-        return min(f1, f2)
-    return 0.5 * (f1 + f2 - (u * u + w * w) / (2.0 * w))
+    if abs(u) >= w:  # min itself, compressed like the window so that the result stays C1
+        return nb_compress(min(f1, f2), c)
+    return nb_compress(0.5 * (f1 + f2 - (u * u + w * w) / (2.0 * w)), c)
 
 
 @njit(cache=True)
-def nb_or(f1: float, f2: float, fam: int, k: float) -> float:
+def nb_or(f1: float, f2: float, fam: int, k: float, c: float) -> float:
     """R-disjunction -(-f1 AND -f2); twin of :func:`pipeline.rfunctions.r_or`."""
-    return -nb_and(-f1, -f2, fam, k)
+    return -nb_and(-f1, -f2, fam, k, c)
 
 
 @njit(cache=True)
-def _node_value(mode: int, fa: float, fb: float, fc: float, fam: int, k: float) -> float:
+def _node_value(mode: int, fa: float, fb: float, fc: float, fam: int, k: float, c: float) -> float:
     """One node of the section 3.3.2 formula (modes 4, 5: the section 3.2 special cases)."""
     if mode == 0:
         return fa
     if mode == 1:
-        return nb_and(fa, fb, fam, k)
+        return nb_and(fa, fb, fam, k, c)
     if mode == 2:
-        return nb_or(fa, fc, fam, k)
+        return nb_or(fa, fc, fam, k, c)
     if mode == 3:
-        return nb_or(nb_and(nb_or(fa, fc, fam, k), fb, fam, k), nb_and(-fa, fc, fam, k), fam, k)
+        return nb_or(nb_and(nb_or(fa, fc, fam, k, c), fb, fam, k, c), nb_and(-fa, fc, fam, k, c), fam, k, c)
     if mode == 4:
-        return nb_and(nb_or(fa, fc, fam, k), fb, fam, k)
-    return nb_and(nb_or(-fa, fb, fam, k), fc, fam, k)
+        return nb_and(nb_or(fa, fc, fam, k, c), fb, fam, k, c)
+    return nb_and(nb_or(-fa, fb, fam, k, c), fc, fam, k, c)
 
 
 # --------------------------------------------------------------------------- compiled kernels
 
 
 @njit(cache=True)
-def _eval_point(p, normals, offsets, pos, neg, mode, fam, k, vals) -> float:
+def _eval_point(p, normals, offsets, pos, neg, mode, fam, k, scale, vals) -> float:
     m = normals.shape[0]
     d = normals.shape[1]
     for j in range(m):
@@ -108,12 +120,12 @@ def _eval_point(p, normals, offsets, pos, neg, mode, fam, k, vals) -> float:
             fa += normals[j, c] * p[c]
         fb = vals[pos[j]] if pos[j] >= 0 else 0.0
         fc = vals[neg[j]] if neg[j] >= 0 else 0.0
-        vals[j] = _node_value(mode[j], fa, fb, fc, fam, k)
+        vals[j] = _node_value(mode[j], fa, fb, fc, fam, k, scale)
     return vals[m - 1]
 
 
 @njit(parallel=True, cache=True)
-def _eval_tree(points, normals, offsets, pos, neg, mode, fam, k):
+def _eval_tree(points, normals, offsets, pos, neg, mode, fam, k, scale):
     """Field at every point; nodes are in post-order (children first, root last)."""
     n = points.shape[0]
     out = np.empty(n)
@@ -122,26 +134,27 @@ def _eval_tree(points, normals, offsets, pos, neg, mode, fam, k):
     for c in prange(nchunks):
         vals = np.empty(normals.shape[0])
         for i in range(c * chunk, min(n, (c + 1) * chunk)):
-            out[i] = _eval_point(points[i], normals, offsets, pos, neg, mode, fam, k, vals)
+            out[i] = _eval_point(points[i], normals, offsets, pos, neg, mode, fam, k, scale, vals)
     return out
 
 
 @njit(cache=True)
-def _box_node(mode, alo, ahi, blo, bhi, clo, chi, fam, k):
-    """Interval of one node: every R-function is nondecreasing in each argument."""
-    lo = _node_value(mode, alo, blo, clo, fam, k)
-    hi = _node_value(mode, ahi, bhi, chi, fam, k)
+def _box_node(mode, alo, ahi, blo, bhi, clo, chi, fam, k, c):
+    """Interval of one node: every R-function (and the magnitude control) is nondecreasing in
+    each argument."""
+    lo = _node_value(mode, alo, blo, clo, fam, k, c)
+    hi = _node_value(mode, ahi, bhi, chi, fam, k, c)
     if mode == 3:  # -fa occurs too: (fa v fc) ^ fb with fa, and (-fa ^ fc) with -fa
-        lo = nb_or(nb_and(nb_or(alo, clo, fam, k), blo, fam, k), nb_and(-ahi, clo, fam, k), fam, k)
-        hi = nb_or(nb_and(nb_or(ahi, chi, fam, k), bhi, fam, k), nb_and(-alo, chi, fam, k), fam, k)
+        lo = nb_or(nb_and(nb_or(alo, clo, fam, k, c), blo, fam, k, c), nb_and(-ahi, clo, fam, k, c), fam, k, c)
+        hi = nb_or(nb_and(nb_or(ahi, chi, fam, k, c), bhi, fam, k, c), nb_and(-alo, chi, fam, k, c), fam, k, c)
     elif mode == 5:
-        lo = nb_and(nb_or(-ahi, blo, fam, k), clo, fam, k)
-        hi = nb_and(nb_or(-alo, bhi, fam, k), chi, fam, k)
+        lo = nb_and(nb_or(-ahi, blo, fam, k, c), clo, fam, k, c)
+        hi = nb_and(nb_or(-alo, bhi, fam, k, c), chi, fam, k, c)
     return lo, hi
 
 
 @njit(parallel=True, cache=True)
-def _bound_tree(lo, hi, normals, offsets, pos, neg, mode, fam, k, pad):
+def _bound_tree(lo, hi, normals, offsets, pos, neg, mode, fam, k, scale, pad):
     """Rigorous enclosure of the field over each box [lo_i, hi_i]."""
     nb = lo.shape[0]
     m = normals.shape[0]
@@ -163,7 +176,7 @@ def _bound_tree(lo, hi, normals, offsets, pos, neg, mode, fam, k, pad):
             bhi = vhi[pos[j]] if pos[j] >= 0 else 0.0
             clo = vlo[neg[j]] if neg[j] >= 0 else 0.0
             chi = vhi[neg[j]] if neg[j] >= 0 else 0.0
-            a, b = _box_node(mode[j], alo, ahi, blo, bhi, clo, chi, fam, k)
+            a, b = _box_node(mode[j], alo, ahi, blo, bhi, clo, chi, fam, k, scale)
             vlo[j] = a - pad
             vhi[j] = b + pad
         flo[i] = vlo[m - 1]
@@ -735,7 +748,13 @@ class BSPField:
 
     def _args(self):
         t = self.tree
-        return t.normals, t.offsets, t.pos, t.neg, t.mode, FAMILY_CODE[self.rfunc], SARDF_K
+        return t.normals, t.offsets, t.pos, t.neg, t.mode, FAMILY_CODE[self.rfunc], SARDF_K, self.magnitude_scale
+
+    @property
+    def magnitude_scale(self) -> float:
+        """c of the r0/sardf magnitude control (pipeline.rfunctions.compress): twice the mesh's
+        diagonal, so every value within a mesh diagonal of zero is eq. 2 itself."""
+        return R0_SCALE * self.scale
 
     def evaluate(self, points: np.ndarray) -> np.ndarray:
         """Field values (N,) at points (N, d)."""

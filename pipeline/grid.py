@@ -121,16 +121,25 @@ def write_blocks(grid, blocks: BlockGrid, scale: float = 1.0) -> None:
         grid.copyFromArray(np.ascontiguousarray(arr), (int(o[s, 0]), int(o[s, 1]), int(o[s, 2])))
 
 
-def frep_to_vdb(blocks: BlockGrid, inside_boxes: np.ndarray, name: str = "frep"):
+def frep_to_vdb(blocks: BlockGrid, inside_boxes: np.ndarray, name: str = "frep",
+                outside_boxes: np.ndarray | None = None, domain: tuple[np.ndarray, np.ndarray] | None = None):
     """FloatGrid in FRep convention (f > 0 inside) from band blocks plus boxes proven inside.
 
     Active voxels carry the field; inactive voxels and tiles inside hold +bg, outside -bg
     (SPEC's ``frep`` row). pyopenvdb 10 cannot write inactive values other than the
     background, so we build the level-set-signed grid (-f, background +bg), let OpenVDB's
     signedFloodFill set inside to -bg, negate the active values with OpenVDB AX and set the
-    background to -bg, which swaps +bg and -bg on every inactive value. Boxes the affine
-    bound proved inside are then filled explicitly, so the result does not depend on the
-    flood fill near the domain's clip faces.
+    background to -bg, which swaps +bg and -bg on every inactive value.
+
+    The flood fill is right in every leaf whose voxels all carry their sign and whose band is
+    closed (pipeline.voxelise.close_band): its scan lines then never cross a sign change between
+    inactive voxels. Where that does not hold it is not trusted (issue 12):
+
+    * boxes proven inside (+bg) and, when given, ``outside_boxes`` (-bg) are filled explicitly,
+      so no tile takes its sign from a neighbouring leaf's corner;
+    * with ``domain`` (the index box): leaves without an active voxel are filled with their one
+      sign, and leaves cut by the domain's faces (whose voxels beyond the domain carry no sign,
+      so the scan lines may cross them) are read back and every voxel of the wrong sign is set.
     """
     bg = abs(float(blocks.background))
     grid = vdb.FloatGrid(bg)
@@ -142,8 +151,42 @@ def frep_to_vdb(blocks: BlockGrid, inside_boxes: np.ndarray, name: str = "frep")
     grid.background = -bg  # swaps +bg <-> -bg on inactive values and tiles
     for lo, hi in _boxes_to_fill(blocks, inside_boxes):
         grid.fill(tuple(int(c) for c in lo), tuple(int(c) for c in hi), bg, False)
+    if outside_boxes is not None:
+        for lo, hi in np.asarray(outside_boxes, np.int64).reshape(-1, 2, 3):
+            grid.fill(tuple(int(c) for c in lo), tuple(int(c) for c in hi), -bg, False)
+    if domain is not None:
+        _fix_untrusted_leaves(grid, blocks, np.asarray(domain[0]), np.asarray(domain[1]), bg)
     grid.prune()
     return grid
+
+
+def _fix_untrusted_leaves(grid, blocks: BlockGrid, imin: np.ndarray, imax: np.ndarray, bg: float) -> int:
+    """Set the sign of the leaves the flood fill cannot be trusted with (see frep_to_vdb)."""
+    o = blocks.origins
+    if len(o) == 0:
+        return 0
+    cut = np.any(o < imin, axis=1) | np.any(o + LEAF - 1 > imax, axis=1)
+    empty = ~blocks.active.reshape(len(o), -1).any(axis=1)
+    fixed = 0
+    r = np.arange(LEAF)
+    for n in np.flatnonzero(cut | empty):
+        lo = np.maximum(o[n], imin)
+        hi = np.minimum(o[n] + LEAF - 1, imax)
+        if np.any(hi < lo):
+            continue
+        want = blocks.values[n] > 0
+        if empty[n] and not cut[n]:  # uniform by the closure: one fill
+            grid.fill(tuple(int(c) for c in lo), tuple(int(c) for c in hi), bg if want.flat[0] else -bg, False)
+            continue
+        got = np.zeros((LEAF, LEAF, LEAF), np.float32)
+        grid.copyToArray(got, tuple(int(c) for c in o[n]))
+        ok = [(o[n, a] + r >= imin[a]) & (o[n, a] + r <= imax[a]) for a in range(3)]
+        in_dom = ok[0][:, None, None] & ok[1][None, :, None] & ok[2][None, None, :]
+        for i, j, k in np.argwhere(in_dom & ((got > 0) != want) & ~blocks.active[n]):
+            ijk = (int(o[n, 0] + i), int(o[n, 1] + j), int(o[n, 2] + k))
+            grid.fill(ijk, ijk, bg if want[i, j, k] else -bg, False)
+            fixed += 1
+    return fixed
 
 
 def _boxes_to_fill(blocks: BlockGrid, inside_boxes: np.ndarray) -> np.ndarray:

@@ -86,19 +86,36 @@ def length(*xs):
 # --- R-functions --------------------------------------------------------------------------
 
 
-def r_and(a, b, family: str = "r0", k: float = rf.SARDF_K):
-    """R-conjunction: intersection of two FRep fields (families of pipeline.rfunctions)."""
+def r_and(a, b, family: str = "r0", k: float = rf.SARDF_K, scale: float = np.inf):
+    """R-conjunction: intersection of two FRep fields (families of pipeline.rfunctions);
+    ``scale``: the magnitude control of :func:`pipeline.rfunctions.compress`."""
     if not is_form(a, b):
-        return rf.r_and(a, b, family, k)
+        return rf.r_and(a, b, family, k, scale)
     like = a if isinstance(a, AffineForm) else b
     a, b = _lift(a, like), _lift(b, like)
     if family == "min_max":
         return aa.minimum(a, b)
     if family == "r0":
-        return _monotone_hull(a + b - aa.sqrt(aa.sqr(a) + aa.sqr(b)), a, b)
+        return compress_form(_monotone_hull(a + b - aa.sqrt(aa.sqr(a) + aa.sqr(b)), a, b), scale)
     if family == "sardf":
-        return _sardf_and_bound(a, b, k)
+        return compress_form(_sardf_and_bound(a, b, k), scale)
     raise ValueError(f"unknown R-function family {family!r}")
+
+
+def compress_form(r: AffineForm, scale: float) -> AffineForm:
+    """Bound of compress(r): the form itself where its range lies within +-scale (compress is the
+    identity there), else the interval [compress(lo), compress(hi)] (compress is increasing)."""
+    if not np.isfinite(scale):
+        return r
+    lo, hi = r.interval()
+    far = (lo < -scale) | (hi > scale)
+    if not far.any():
+        return r
+    with np.errstate(invalid="ignore"):
+        clo = rf.compress(lo, scale) * (1.0 + np.copysign(1e-12, -lo))  # outward by rounding
+        chi = rf.compress(hi, scale) * (1.0 + np.copysign(1e-12, hi))
+    box = AffineForm.from_interval(np.nan_to_num(clo, nan=-np.inf), np.nan_to_num(chi, nan=np.inf))
+    return aa.select(far, box, r)
 
 
 def _monotone_hull(r: AffineForm, a: AffineForm, b: AffineForm) -> AffineForm:
@@ -117,9 +134,9 @@ def _monotone_hull(r: AffineForm, a: AffineForm, b: AffineForm) -> AffineForm:
     return aa.select(tighter, AffineForm.from_interval(np.minimum(lo, hi), hi), r)
 
 
-def r_or(a, b, family: str = "r0", k: float = rf.SARDF_K):
+def r_or(a, b, family: str = "r0", k: float = rf.SARDF_K, scale: float = np.inf):
     """R-disjunction: union, -(-a AND -b)."""
-    return -r_and(-a, -b, family, k)
+    return -r_and(-a, -b, family, k, scale)
 
 
 def _sardf_and_bound(a: AffineForm, b: AffineForm, k: float) -> AffineForm:

@@ -9,10 +9,18 @@ internal and leaf nodes) and bounds *all cells of a level in one vectorised call
 * the rest are subdivided down to ``block`` voxels (<= the 8^3 leaf), and only those blocks are
   evaluated voxel by voxel.
 
-Each cell is bounded over its box dilated by band voxels, so every voxel within band
-voxels of the zero set lies in an evaluated block (the narrow band is never cut by culling).
+Each cell is bounded over its box dilated by max(band, 1) voxels, so every voxel within band
+voxels of the zero set lies in an evaluated block (the narrow band is never cut by culling),
+and a culled cell has the sign of its proof on the face neighbours of its voxels too.
 Inside the evaluated blocks a voxel is active when its first-order distance estimate
 |f| / |grad f| is at most ``band`` voxels, or when the sign changes to a neighbour.
+
+**The band is closed by construction** (issue 12): after the blocks are assembled into leaves,
+:func:`close_band` activates every voxel whose sign (of the float32 value the grid stores)
+differs from a face neighbour's, across block and leaf borders. Since a culled voxel cannot
+differ in sign from its neighbours (its proof covers them), no inactive voxel is next to a
+sign change, so the sign of every inactive region is that of the band around it and
+OpenVDB's signedFloodFill (scan lines and tile neighbours) cannot leak.
 """
 
 from __future__ import annotations
@@ -26,8 +34,10 @@ from numba import njit
 from pipeline.grid import LEAF, LEAF_LOG2, BlockGrid, pack_keys
 from pipeline.nodes import Node
 
-BOUND_CHUNK = 200_000  # boxes per affine call (memory ~ 100 bytes x ops x boxes)
-EVAL_CHUNK = 1 << 20  # points per evaluation call
+BOUND_CHUNK = 200_000  # boxes per affine call at most (memory ~ 100 bytes x ops x boxes)
+EVAL_CHUNK = 1 << 20  # points per evaluation call at most
+WORK_BYTES = 768 << 20  # working set of one bound / evaluation call, whatever the model's size
+FINITE_LIMIT = 1e30  # |values| beyond are clamped before the float32 grid (its max is 3.4e38)
 
 
 class NonFiniteField(ValueError):
@@ -48,6 +58,7 @@ class CellLevels:
     blocks: np.ndarray  # (N,3) origins of blocks to evaluate
     block: int
     inside: list[tuple[np.ndarray, int]] = field(default_factory=list)  # (origins, size) per level
+    outside: list[tuple[np.ndarray, int]] = field(default_factory=list)  # cells proven outside
     stats: dict = field(default_factory=dict)
 
 
@@ -65,12 +76,28 @@ def _clip_boxes(origins: np.ndarray, size: int, imin: np.ndarray, imax: np.ndarr
     return lo, hi
 
 
+def model_weight(model: Node) -> int:
+    """How many arrays one evaluation of the model keeps alive at once, at most: its nodes (an
+    n-ary node holds all its children's results) plus a formula's operations."""
+    n = 0
+    for node in model.walk():
+        formula = getattr(node.params, "formula", None)
+        n += 1 + (len(formula) // 2 if isinstance(formula, str) else 0)  # <= one operation per 2 characters
+    return n
+
+
+def chunk_for(model: Node, bytes_per_item: int, cap: int) -> int:
+    """Items (boxes, points) per call so that the call's working set stays within WORK_BYTES."""
+    return int(max(256, min(cap, WORK_BYTES // (bytes_per_item * model_weight(model)))))
+
+
 def bound_cells(model: Node, lo_idx: np.ndarray, hi_idx: np.ndarray, h: float, pad: float, t: float):
     """Affine bounds of the model over index boxes (voxel centres lo..hi) dilated by ``pad``."""
     flo = np.empty(len(lo_idx))
     fhi = np.empty(len(lo_idx))
-    for s in range(0, len(lo_idx), BOUND_CHUNK):
-        e = s + BOUND_CHUNK
+    chunk = chunk_for(model, 2 * 48, BOUND_CHUNK)  # an affine form: 6 float64 per box, ~2 alive per node
+    for s in range(0, len(lo_idx), chunk):
+        e = s + chunk
         a, b = model.bound(lo_idx[s:e] * h - pad, hi_idx[s:e] * h + pad, t)
         flo[s:e], fhi[s:e] = a, b
     return flo, fhi
@@ -94,7 +121,7 @@ def enumerate_cells(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, b
     counts = ((hi_c - start) // size) + 1
     grid = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
     cells = start + grid * size
-    pad = band * h
+    pad = max(band, 1.0) * h  # >= one voxel: a culled cell's sign holds on its voxels' neighbours
     out = CellLevels(np.zeros((0, 3), np.int64), block)
     st = {"cells_visited": 0, "cells_culled_inside": 0, "cells_culled_outside": 0, "levels": []}
     stop = block if stop_size is None else max(block, stop_size)
@@ -111,6 +138,8 @@ def enumerate_cells(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, b
             progress(f"level {size}: {len(cells)} cells")
         if inside.any():
             out.inside.append((cells[inside], size))
+        if outside.any():
+            out.outside.append((cells[outside], size))
         amb = cells[ambiguous]
         if size <= stop:
             out.blocks = amb
@@ -134,7 +163,7 @@ def evaluate_blocks(model: Node, origins: np.ndarray, block: int, h: float, t: f
     b = block
     r = np.arange(b)
     out = np.empty((len(origins), b, b, b))
-    per = max(1, EVAL_CHUNK // (b * b * b))
+    per = max(1, chunk_for(model, 3 * 8, EVAL_CHUNK) // (b * b * b))
     for s in range(0, len(origins), per):
         o = origins[s:s + per]
         x = ((o[:, 0, None, None, None] + r[None, :, None, None]) * h)
@@ -192,6 +221,7 @@ class Voxelised:
     blocks: BlockGrid  # leaf blocks: evaluated values (+-background where not evaluated), band mask
     inside_boxes: np.ndarray  # (K,2,3) index boxes proven inside (inclusive corners)
     stats: dict
+    outside_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3), np.int64))  # not in a leaf
 
 
 @dataclass
@@ -204,6 +234,7 @@ class BlockSamples:
     valid: np.ndarray  # (N,b,b,b) inside the domain
     inside: list  # [(origins, size)] cells proven inside, per level
     stats: dict
+    outside: list = field(default_factory=list)  # [(origins, size)] cells proven outside
 
 
 def sample_blocks(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: float = 3.0,
@@ -221,7 +252,7 @@ def sample_blocks(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, ban
     active = band_mask(np.where(np.isfinite(vals), vals, -np.inf), h, band) & valid
     if progress:
         progress(f"evaluated {len(blocks)} blocks")
-    return BlockSamples(blocks, vals, active, valid, levels.inside, levels.stats)
+    return BlockSamples(blocks, vals, active, valid, levels.inside, levels.stats, levels.outside)
 
 
 def merge_samples(parts: list[BlockSamples]) -> BlockSamples:
@@ -232,27 +263,95 @@ def merge_samples(parts: list[BlockSamples]) -> BlockSamples:
     keys = ("cells_visited", "cells_culled_inside", "cells_culled_outside")
     stats = {k: sum(p.stats[k] for p in parts) for k in keys}
     stats["bricks"] = len(parts)
-    return BlockSamples(*cat, [lv for p in parts for lv in p.inside], stats)
+    return BlockSamples(*cat, [lv for p in parts for lv in p.inside], stats, [lv for p in parts for lv in p.outside])
 
 
 def assemble(s: BlockSamples, imin: np.ndarray, imax: np.ndarray, h: float, band: float) -> Voxelised:
-    """Leaves, inside boxes and statistics from the evaluated blocks."""
+    """Leaves, inside boxes and statistics from the evaluated blocks; the band is closed
+    (:func:`close_band`) and every value is finite (clamped to +-FINITE_LIMIT, counted)."""
     block = s.values.shape[1] if len(s.values) else 4
+    vals = s.values
+    clamped = int(np.count_nonzero(s.valid & (np.abs(vals) > FINITE_LIMIT)))
+    if clamped:
+        vals = np.clip(vals, -FINITE_LIMIT, FINITE_LIMIT)
+    grid, known = _assemble_leaves(s.blocks, block, vals, s.active, s.valid, s.inside, h, 1.0)
+    added = close_band(grid, known)
     # from the float32 values the grid stores, so bricked (float32 transfer) and unsplit runs agree
-    bg = _background(s.values[s.active].astype(np.float32), band, h)
-    grid = _assemble_leaves(s.blocks, block, s.values, s.active, s.valid, s.inside, h, bg)
+    bg = _background(grid.values[grid.active], band, h)
+    _set_proxies(grid.values, known, np.float32(bg))
+    grid.background = -bg
     inside_boxes = _inside_boxes(s.inside, imin, imax)
+    outside_boxes = _outside_leaves(grid, _inside_boxes(s.outside, imin, imax))
     stats = dict(s.stats)
     stats.update({
         "block": int(block),
         "blocks_evaluated": int(len(s.blocks)),
         "voxels_evaluated": int(s.valid.sum()),
-        "active_voxels": int(s.active.sum()),
+        "active_voxels": int(grid.active.sum()),
+        "activated_by_closure": int(added),
+        "values_clamped": clamped,
         "leaves": int(len(grid.origins)),
         "inside_tiles": int(len(inside_boxes)),
         "background": float(bg),
     })
-    return Voxelised(grid, inside_boxes, stats)
+    return Voxelised(grid, inside_boxes, stats, outside_boxes)
+
+
+def _outside_leaves(grid: BlockGrid, boxes: np.ndarray) -> np.ndarray:
+    """Boxes proven outside that lie in no leaf of the grid (a leaf carries its own signs)."""
+    if len(boxes) == 0 or len(grid.origins) == 0:
+        return boxes
+    leaf = (boxes[:, 0] >> LEAF_LOG2) << LEAF_LOG2
+    sub = np.all((boxes[:, 1] >> LEAF_LOG2) << LEAF_LOG2 == leaf, axis=1)
+    in_leaf = sub & (grid.block_index(leaf) >= 0)
+    return boxes[~in_leaf]
+
+
+def close_band(grid: BlockGrid, known: np.ndarray) -> int:
+    """Activate every evaluated voxel whose sign (f > 0, of the stored float32 value) differs from
+    that of an evaluated face neighbour, within and across leaves. Returns how many were added."""
+    if len(grid.origins) == 0:
+        return 0
+    nbr = np.stack([grid.block_index(grid.origins + np.eye(3, dtype=np.int64)[a] * LEAF) for a in range(3)], axis=1)
+    return int(_close_band(grid.values, grid.active, known, nbr.astype(np.int64)))
+
+
+@njit(cache=True)
+def _close_band(values, active, known, nbr) -> int:
+    added = 0
+    for r in range(values.shape[0]):
+        for i in range(LEAF):
+            for j in range(LEAF):
+                for k in range(LEAF):
+                    if not known[r, i, j, k]:
+                        continue
+                    inside = values[r, i, j, k] > 0
+                    for axis in range(3):
+                        rr, ii, jj, kk = r, i + (axis == 0), j + (axis == 1), k + (axis == 2)
+                        if ii == LEAF or jj == LEAF or kk == LEAF:  # the neighbour leaf along +axis
+                            rr = nbr[r, axis]
+                            if rr < 0:
+                                continue
+                            ii, jj, kk = ii % LEAF, jj % LEAF, kk % LEAF
+                        if not known[rr, ii, jj, kk] or (values[rr, ii, jj, kk] > 0) == inside:
+                            continue
+                        if not active[r, i, j, k]:
+                            active[r, i, j, k] = True
+                            added += 1
+                        if not active[rr, ii, jj, kk]:
+                            active[rr, ii, jj, kk] = True
+                            added += 1
+    return added
+
+
+@njit(cache=True)
+def _set_proxies(values, known, bg):
+    """Voxels of the leaves that were not evaluated hold +-bg with the sign of their cell's proof."""
+    flat_v = values.reshape(-1)
+    flat_k = known.reshape(-1)
+    for n in range(flat_v.size):
+        if not flat_k[n]:
+            flat_v[n] = bg if flat_v[n] > 0 else -bg
 
 
 def voxelise(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: float = 3.0,
@@ -290,18 +389,19 @@ def _background(active_vals: np.ndarray, band: float, h: float) -> float:
     return float(max(np.abs(active_vals).max() * 1.01, 1e-6))
 
 
-def _assemble_leaves(blocks, b, vals, active, valid, inside_levels, h, bg) -> BlockGrid:
+def _assemble_leaves(blocks, b, vals, active, valid, inside_levels, h, bg) -> tuple[BlockGrid, np.ndarray]:
     """Scatter evaluated blocks into 8^3 leaves; unevaluated voxels hold -bg, or +bg when a
-    sub-leaf cell proved them inside."""
+    sub-leaf cell proved them inside. Also returns the mask of evaluated (known) voxels."""
     if len(blocks) == 0:
-        return BlockGrid(h, -bg)
+        return BlockGrid(h, -bg), np.zeros((0, LEAF, LEAF, LEAF), bool)
     leaf_of = (blocks >> LEAF_LOG2) << LEAF_LOG2
     keys, first, rows = np.unique(pack_keys(leaf_of), return_index=True, return_inverse=True)
     L = len(keys)
     values = np.full((L, LEAF, LEAF, LEAF), -bg, np.float32)
     act = np.zeros((L, LEAF, LEAF, LEAF), bool)
+    known = np.zeros((L, LEAF, LEAF, LEAF), bool)
     filled = np.where(valid, vals, -bg)
-    _scatter(values, act, rows.reshape(-1), blocks - leaf_of, filled, active)
+    _scatter(values, act, known, rows.reshape(-1), blocks - leaf_of, filled, active, valid)
     for origins, size in inside_levels:
         if size >= LEAF or len(origins) == 0:
             continue
@@ -309,11 +409,12 @@ def _assemble_leaves(blocks, b, vals, active, valid, inside_levels, h, bg) -> Bl
         pos = np.minimum(np.searchsorted(keys, lkeys), L - 1)
         ok = keys[pos] == lkeys
         _fill_cells(values, pos[ok], origins[ok] - ((origins[ok] >> LEAF_LOG2) << LEAF_LOG2), size, bg)
-    return BlockGrid(h, -bg, leaf_of[first], values, act)  # keys are sorted: rows stay valid
+    grid = BlockGrid(h, -bg, leaf_of[first], values, act)  # keys are sorted: rows stay valid
+    return grid, known
 
 
 @njit(cache=True)
-def _scatter(values, act, rows, offs, vals, active):
+def _scatter(values, act, known, rows, offs, vals, active, valid):
     b = vals.shape[1]
     for n in range(len(rows)):
         r, oi, oj, ok = rows[n], offs[n, 0], offs[n, 1], offs[n, 2]
@@ -322,6 +423,7 @@ def _scatter(values, act, rows, offs, vals, active):
                 for k in range(b):
                     values[r, oi + i, oj + j, ok + k] = vals[n, i, j, k]
                     act[r, oi + i, oj + j, ok + k] = active[n, i, j, k]
+                    known[r, oi + i, oj + j, ok + k] = valid[n, i, j, k]
 
 
 @njit(cache=True)

@@ -33,7 +33,7 @@ def run(ctx, p: Params) -> dict:
     else:
         samples = sample_blocks(job.model, imin, imax, h, p.band, p.block, job.t, progress=ctx.progress)
     res = assemble(samples, imin, imax, h, p.band)
-    grid = frep_to_vdb(res.blocks, res.inside_boxes, "frep")
+    grid = frep_to_vdb(res.blocks, res.inside_boxes, "frep", outside_boxes=res.outside_boxes, domain=(imin, imax))
     grid.updateMetadata({**ctx.grid_metadata("voxelise", p), "band_voxels": float(p.band)})
     ctx.grids["frep"] = grid
     ctx.blocks["frep"] = res.blocks

@@ -80,13 +80,13 @@ finite = st.floats(-1e3, 1e3, allow_nan=False)
 
 
 @settings(max_examples=300, deadline=None)
-@given(finite, finite, st.sampled_from(FAMILIES))
-def test_numba_rfunctions_match_reference(f1: float, f2: float, family: str) -> None:
+@given(finite, finite, st.sampled_from(FAMILIES), st.sampled_from([np.inf, 1.0, 50.0]))
+def test_numba_rfunctions_match_reference(f1: float, f2: float, family: str, scale: float) -> None:
     code = FAMILY_CODE[family]
-    ref_and = float(rf.r_and(np.array(f1), np.array(f2), family))
-    ref_or = float(rf.r_or(np.array(f1), np.array(f2), family))
-    assert nb_and(f1, f2, code, rf.SARDF_K) == pytest.approx(ref_and, abs=1e-12, rel=1e-12)
-    assert nb_or(f1, f2, code, rf.SARDF_K) == pytest.approx(ref_or, abs=1e-12, rel=1e-12)
+    ref_and = float(rf.r_and(np.array(f1), np.array(f2), family, scale=scale))
+    ref_or = float(rf.r_or(np.array(f1), np.array(f2), family, scale=scale))
+    assert nb_and(f1, f2, code, rf.SARDF_K, scale) == pytest.approx(ref_and, abs=1e-12, rel=1e-12)
+    assert nb_or(f1, f2, code, rf.SARDF_K, scale) == pytest.approx(ref_or, abs=1e-12, rel=1e-12)
 
 
 @pytest.mark.parametrize("family", FAMILIES)
@@ -153,7 +153,8 @@ def _reference_eval(field: BSPField, p: np.ndarray) -> np.ndarray:
         fa = p @ t.normals[j] + t.offsets[j]
         fb = node(t.pos[j]) if t.pos[j] >= 0 else None
         fc = node(t.neg[j]) if t.neg[j] >= 0 else None
-        a, o = (lambda x, y: rf.r_and(x, y, fam)), (lambda x, y: rf.r_or(x, y, fam))
+        c = field.magnitude_scale
+        a, o = (lambda x, y: rf.r_and(x, y, fam, scale=c)), (lambda x, y: rf.r_or(x, y, fam, scale=c))
         if fb is None and fc is None:
             return fa
         if fc is None:

@@ -46,6 +46,8 @@ class Mesh(Node):
             raise InputError(f"{params.path}: mesh is not closed (not watertight), so its field has no "
                              "inside; set allow_open: true to convert it anyway (the field is then not exact)")
         self.warnings = list(self.report.warnings)
+        if not self.report.winding_consistent:
+            mesh = self._repair_winding(mesh)
         if params.method == "bsp":
             from pipeline.bsp import BSPField
 
@@ -59,6 +61,26 @@ class Mesh(Node):
             except ValueError as e:
                 raise InputError(f"{params.path}: {e}") from None
             self.stats = {"faces": int(len(mesh.faces)), "method": "adf", "join": params.join, "p": params.p}
+
+    def _repair_winding(self, mesh):
+        """Faces wound inconsistently are re-oriented along the face adjacency (trimesh's
+        fix_winding), then outwards; the warning says how many were flipped. A mesh that cannot be
+        oriented consistently (non-orientable) is refused: its BSP-field would have a wrong sign."""
+        import trimesh
+
+        fixed = mesh.copy()
+        trimesh.repair.fix_winding(fixed)
+        if fixed.is_watertight and fixed.volume < 0:
+            fixed.invert()
+        if not fixed.is_winding_consistent:
+            raise InputError(f"{self.params.path}: face winding is inconsistent and cannot be repaired "
+                             "(the surface is not orientable); fix the mesh")
+        flipped = int(np.count_nonzero(~_same_orientation(fixed.faces, mesh.faces)))  # rows keep their order
+        self.warnings = [w for w in self.warnings if "winding is inconsistent" not in w]
+        self.warnings.append(f"{self.params.path}: face winding was inconsistent: {flipped} of {len(mesh.faces)} "
+                             "faces flipped to one outward orientation")
+        self.report.winding_repaired = flipped
+        return fixed
 
     def field(self, x, y, z, t):
         if isinstance(x, AffineForm):
@@ -77,4 +99,11 @@ class Mesh(Node):
         return {"where": self.where, "path": self.params.path, "method": self.params.method,
                 "faces": r.faces, "vertices": r.vertices, "watertight": r.watertight,
                 "winding_consistent": r.winding_consistent, "degenerate_faces": r.degenerate_faces,
+                "winding_repaired": getattr(r, "winding_repaired", 0),
                 "components": r.components, "genus": r.genus, "tree": self.stats}
+
+
+def _same_orientation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per face: do the index triples a and b list the same vertices in the same cyclic order?"""
+    rolled = [np.roll(b, r, axis=1) for r in range(3)]
+    return np.any([np.all(a == x, axis=1) for x in rolled], axis=0)

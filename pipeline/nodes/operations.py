@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from functools import reduce
+from collections.abc import Callable
 from typing import Any, Literal
 
+import numpy as np
 from pydantic import Field
 
 from pipeline import ops
@@ -18,10 +19,37 @@ class _SetParams(Params):
     rfunc: RFunc = "r0"
 
 
+R0_SCALE = 2.0  # magnitude control of r0/sardf results, in domain diagonals (rfunctions.compress)
+
+
+def magnitude_scale(domain: Any) -> float:
+    """c of :func:`pipeline.rfunctions.compress` for a job's set operations: twice the domain's
+    diagonal, so every value within the domain's own distance scale is eq. 2 itself and no value
+    overflows however deep the tree (no domain, as for nodes built in code: no control)."""
+    if domain is None:
+        return np.inf
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in domain.bounds)
+    return R0_SCALE * float(np.linalg.norm(hi - lo)) or np.inf
+
+
+def balanced(op: Callable[[Any, Any], Any], items: list) -> Any:
+    """op folded over items as a balanced binary tree (depth log2 n, not n - 1): every R-function
+    family is commutative and associative in sign, and r0's magnitude changes with the depth."""
+    while len(items) > 1:
+        pairs = [op(items[i], items[i + 1]) for i in range(0, len(items) - 1, 2)]
+        items = pairs + ([items[-1]] if len(items) % 2 else [])
+    return items[0]
+
+
 class _SetOp(Node):
     Params = _SetParams
     child_fields = ("of",)
     list_field = "of"
+    uses_domain = True  # the job's domain sets the magnitude control of r0 / sardf
+
+    def __init__(self, params, where: str = "", domain: Any = None, t: float = 0.0):
+        super().__init__(params, where)
+        self.scale = magnitude_scale(domain)
 
     def _fields(self, x, y, z, t):
         return [c.field(x, y, z, t) for c in self.params.of]
@@ -29,30 +57,32 @@ class _SetOp(Node):
 
 @register("union")
 class Union(_SetOp):
-    """Union by R-disjunction (bsp-fields eq. 1 / eq. 2 / SARDF), folded left over the list."""
+    """Union by R-disjunction (bsp-fields eq. 1 / eq. 2 / SARDF), as a balanced tree over the list."""
 
     def field(self, x, y, z, t):
-        fam = self.params.rfunc
-        return reduce(lambda a, b: ops.r_or(a, b, fam), self._fields(x, y, z, t))
+        fam, c = self.params.rfunc, self.scale
+        return balanced(lambda a, b: ops.r_or(a, b, fam, scale=c), self._fields(x, y, z, t))
 
 
 @register("intersection")
 class Intersection(_SetOp):
-    """Intersection by R-conjunction."""
+    """Intersection by R-conjunction, as a balanced tree over the list."""
 
     def field(self, x, y, z, t):
-        fam = self.params.rfunc
-        return reduce(lambda a, b: ops.r_and(a, b, fam), self._fields(x, y, z, t))
+        fam, c = self.params.rfunc, self.scale
+        return balanced(lambda a, b: ops.r_and(a, b, fam, scale=c), self._fields(x, y, z, t))
 
 
 @register("difference")
 class Difference(_SetOp):
-    """First operand minus all others: f1 AND (NOT f2) AND (NOT f3) ..."""
+    """First operand minus all others: f1 AND NOT (f2 OR f3 OR ...), the union balanced."""
 
     def field(self, x, y, z, t):
-        fam = self.params.rfunc
+        fam, c = self.params.rfunc, self.scale
         first, *rest = self._fields(x, y, z, t)
-        return reduce(lambda a, b: ops.r_and(a, -b, fam), rest, first)
+        if not rest:
+            return first
+        return ops.r_and(first, -balanced(lambda a, b: ops.r_or(a, b, fam, scale=c), rest), fam, scale=c)
 
 
 @register("complement")
@@ -86,6 +116,11 @@ class Blend(Node):
 
     child_fields = ("of",)
     list_field = "of"  # blend: [a, b] like union: [a, b]
+    uses_domain = True
+
+    def __init__(self, params, where: str = "", domain: Any = None, t: float = 0.0):
+        super().__init__(params, where)
+        self.scale = magnitude_scale(domain)
 
     def field(self, x, y, z, t):
         p = self.params
@@ -93,7 +128,8 @@ class Blend(Node):
         f2 = p.of[1].field(x, y, z, t)
         if p.op == "difference":
             f2 = -f2
-        base = ops.r_or(f1, f2, p.rfunc) if p.op == "union" else ops.r_and(f1, f2, p.rfunc)
+        c = self.scale
+        base = ops.r_or(f1, f2, p.rfunc, scale=c) if p.op == "union" else ops.r_and(f1, f2, p.rfunc, scale=c)
         disp = p.a0 * ops.div(1.0, 1.0 + ops.sqr(f1 * (1.0 / p.a1)) + ops.sqr(f2 * (1.0 / p.a2)))
         return base + disp
 

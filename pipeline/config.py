@@ -867,8 +867,8 @@ def _check_memory(job: Job, ctx: _Ctx, base: tuple = ()) -> None:
     from pipeline.voxelise import estimate_band_bytes, estimate_interior_voxels, root_size_for
 
     voxelise = next((p for n, p in job.stages if n == "voxelise"), None)
-    if voxelise is None or job.domain.dims.max() < 1024:
-        return  # small domains always fit
+    if voxelise is None or job.domain.dims.max() < 512:
+        return  # small domains always fit: 512^3 voxels of band would be ~3 GiB
     avail = _available_memory()
     # the estimates below enumerate these cells themselves: check their count first, in floats
     roots = float(np.prod(np.ceil(job.domain.dims / root_size_for(job.domain.dims, voxelise.block)) + 1))

@@ -322,3 +322,19 @@ def test_4000_sphere_union_under_a_memory_cap(tmp_path) -> None:
     if r.returncode == 0:
         g = vdb.read(str(tmp_path / "out" / "many" / "many.vdb"), "frep")
         assert g.activeVoxelCount() > 0
+
+
+@pytest.mark.parametrize("model", ["sphere: {center: [0.9, 0.2, -0.3], radius: 0.7}",
+                                   "torus: {center: [0.0, 0.0, 1.0], major: 0.7, minor: 0.3}"])
+def test_models_cut_by_the_domain_faces(tmp_path, model) -> None:
+    """Leaves cut by the domain's faces hold voxels with no sign beyond it: the flood fill's scan
+    lines cross them. frep, surface and hfrep must still have the model's sign at every voxel."""
+    job, folder, m = run_config(tmp_path, frep_config(model, res=48, more="  - hfrep: {}\n"))
+    lo, hi = job.domain.index_min, job.domain.index_max
+    truth = model_values(job, lo, hi)
+    for grid, positive_inside in (("frep", True), ("surface", False), ("hfrep", True)):
+        vals, active = read_box(folder / "job.vdb", grid, lo, hi)
+        got = vals > 0 if positive_inside else vals < 0
+        assert np.all(np.isfinite(vals)), grid
+        assert np.count_nonzero((got != (truth > 0)) & (np.abs(truth) > 1e-9)) == 0, grid
+        assert unclosed_pairs(vals if positive_inside else -vals, active) == 0, grid

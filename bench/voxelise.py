@@ -2,10 +2,21 @@
 
     .venv/bin/python bench/voxelise.py [--quick]
 
+Default sizes 256^3 and 512^3 (each run in a fresh subprocess); ``--quick``: 128^3 only, every
+run inside this process (a smoke run of under a minute; peak RSS is then cumulative).
+
 1. Sparse voxelise (affine culling + block evaluation + VDB build) vs dense NumPy evaluation
    of the same model on every voxel of the domain, at 256^3 and 512^3: time, voxels evaluated.
 2. The same field through OpenVDB AX (`pyopenvdb.ax`, C++ JIT over the same active voxels)
-   as a throughput ceiling for per-voxel evaluation.
+   as a throughput ceiling for per-voxel evaluation: our frep grid is written to a .vdb
+   (pipeline.vdbio.write_vdb) and read back, and AX evaluates the same formula (sphere, torus,
+   box, and configs/demo.yaml's superellipsoid minus a box written as AX code) over the active
+   voxels of the read-back topology. A second table prints our voxelise time per active voxel
+   (voxelise() alone, and with the VDB build) vs AX's time per active voxel, and the ratio.
+   Both sides use the 2 cores (Numba kernels and AX's TBB threads); AX's time excludes its
+   JIT compilation of the snippet is inside the timed call (included; the last column times the
+   same snippet on an empty grid, i.e. the compilation alone).
+   The 512^3 rows (default sizes) are the demo at 512^3 vs the dense NumPy evaluation.
 3. Scaling 128^3 .. 1024^3 for a sphere: work should grow ~4x per doubling (surface area),
    not 8x (volume). Peak memory of each run is measured in a fresh subprocess.
 """
@@ -17,6 +28,7 @@ import json
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -27,6 +39,7 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.grid import frep_to_vdb, vdb  # noqa: E402
 from pipeline.nodes import REGISTRY  # noqa: E402
+from pipeline.vdbio import write_vdb  # noqa: E402
 from pipeline.voxelise import voxelise  # noqa: E402
 
 MODELS = {
@@ -36,6 +49,11 @@ MODELS = {
     "torus": (lambda: REGISTRY["torus"](REGISTRY["torus"].Params(major=0.6, minor=0.2)),
               "vec3f p = getvoxelpws(); float q = sqrt(p.x*p.x + p.y*p.y) - 0.6;"
               " @frep = 0.2 - sqrt(q*q + p.z*p.z);"),
+    "box": (lambda: REGISTRY["box"](REGISTRY["box"].Params(min=(-0.6, -0.45, -0.3), max=(0.6, 0.45, 0.3))),
+            "vec3f p = getvoxelpws();"
+            " float qx = abs(p.x) - 0.6; float qy = abs(p.y) - 0.45; float qz = abs(p.z) - 0.3;"
+            " float ox = max(qx, 0.0); float oy = max(qy, 0.0); float oz = max(qz, 0.0);"
+            " @frep = -(sqrt(ox*ox + oy*oy + oz*oz) + min(max(qx, max(qy, qz)), 0.0));"),
 }
 
 
@@ -107,57 +125,100 @@ def run_dense(model_name: str, n: int) -> dict:
     return {"model": model_name, "n": n, "dense_s": time.perf_counter() - t0, "voxels_evaluated": total}
 
 
+def written_grid(res):
+    """Our frep grid written to a .vdb (as the export stage does) and read back."""
+    grid = frep_to_vdb(res.blocks, res.inside_boxes, "frep")
+    with tempfile.TemporaryDirectory(prefix="bench_voxelise_") as tmp:
+        path = Path(tmp) / "frep.vdb"
+        write_vdb(path, [grid])
+        return vdb.read(str(path), "frep")
+
+
 def run_ax(model_name: str, n: int) -> dict:
-    """OpenVDB AX over the active voxels of our frep grid: C++ per-voxel throughput."""
+    """OpenVDB AX over the active voxels of our written (read-back) frep grid: C++ per-voxel
+    throughput on the same topology."""
     model = MODELS[model_name][0]()
     imin, imax, h = domain(n, model_name)
     res = voxelise(model, imin, imax, h, 3.0, 4)
-    grid = frep_to_vdb(res.blocks, res.inside_boxes, "frep")
+    grid = written_grid(res)
     ref = {tuple(map(int, p)): v for p, v in zip(*res.blocks.active_voxels(), strict=True)}
     t0 = time.perf_counter()
     vdb.ax(MODELS[model_name][1], grid)
     dt = time.perf_counter() - t0
+    empty = vdb.FloatGrid(-1.0)
+    empty.name = "frep"
+    t0 = time.perf_counter()
+    vdb.ax(MODELS[model_name][1], empty)  # the same snippet on no voxels: AX's JIT compilation
+    compile_s = time.perf_counter() - t0
     acc = grid.getConstAccessor()
     sample = list(ref.items())[:: max(1, len(ref) // 200)]
     err = max(abs(acc.getValue(k) - v) for k, v in sample)
-    return {"model": model_name, "n": n, "ax_s": dt, "ax_voxels": int(grid.activeVoxelCount()), "ax_max_diff": err}
+    return {"model": model_name, "n": n, "ax_s": dt, "ax_voxels": int(grid.activeVoxelCount()), "ax_max_diff": err,
+            "ax_compile_s": compile_s}
+
+
+INLINE = False  # --quick: every run in this process (no start-up per run; peak RSS is cumulative)
+RUNS = {"sparse": run_sparse, "dense": run_dense, "ax": run_ax}
 
 
 def in_subprocess(fn: str, model: str, n: int) -> dict:
+    if INLINE:
+        return RUNS[fn](model, n)
     out = subprocess.run([sys.executable, __file__, "--one", fn, model, str(n)], capture_output=True, text=True,
                          check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def print_per_active(pairs: list[tuple[dict, dict]]) -> None:
+    """Our voxelise per active voxel vs OpenVDB AX per active voxel of the read-back grid."""
+    print("\n## Per active voxel: our voxelise vs OpenVDB AX over the same active voxels"
+          " (our frep grid written to .vdb and read back)\n")
+    print("| model | n^3 | active (ours) | active (read back, AX) | voxelise() s | + VDB build s |"
+          " ours ns / active | AX s | AX ns / active | ours / AX | AX max abs diff | AX compile s (empty grid) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for s, a in pairs:
+        ours = s["enumerate_eval_s"] / s["grid_active"] * 1e9
+        ours_all = s["total_s"] / s["grid_active"] * 1e9
+        ax = a["ax_s"] / a["ax_voxels"] * 1e9
+        print(f"| {s['model']} | {s['n']} | {s['grid_active']:,} | {a['ax_voxels']:,} | {s['enumerate_eval_s']:.3f} |"
+              f" {s['total_s']:.3f} | {ours:.0f} ({ours_all:.0f} with build) | {a['ax_s']:.3f} | {ax:.0f} |"
+              f" {ours / ax:.1f}x ({ours_all / ax:.1f}x) | {a['ax_max_diff']:.2e} | {a['ax_compile_s']:.3f} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true", help="smaller sizes (for a smoke run)")
+    ap.add_argument("--quick", action="store_true", help="128^3 only, runs in this process (smoke run, < 60 s)")
     ap.add_argument("--one", nargs=3, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
         fn, model, n = args.one
-        print(json.dumps({"sparse": run_sparse, "dense": run_dense, "ax": run_ax}[fn](model, int(n))))
+        print(json.dumps(RUNS[fn](model, int(n))))
         return
-    sizes = [128, 256] if args.quick else [256, 512]
+    global INLINE
+    INLINE = args.quick
+    sizes = [128] if args.quick else [256, 512]
     print("## Sparse voxelise vs dense NumPy vs OpenVDB AX (band 3, block 4)\n")
     print("| model | n^3 | sparse s | dense s | dense/sparse | evaluated sparse | evaluated dense | evaluated/active |"
           " AX s (active voxels) | sparse eval per voxel vs AX |")
     print("|---|---|---|---|---|---|---|---|---|---|")
+    pairs = []
     for model in MODELS:
         for n in sizes:
             s = in_subprocess("sparse", model, n)
             d = in_subprocess("dense", model, n)
             a = in_subprocess("ax", model, n)
+            pairs.append((s, a))
             ns_sparse = s["enumerate_eval_s"] / s["voxels_evaluated"] * 1e9
             ns_ax = a["ax_s"] / a["ax_voxels"] * 1e9
             print(f"| {model} | {n} | {s['total_s']:.2f} | {d['dense_s']:.2f} | {d['dense_s'] / s['total_s']:.1f}x |"
                   f" {s['voxels_evaluated']:,} | {d['voxels_evaluated']:,} | {s['voxels_evaluated'] / s['active']:.2f} |"
                   f" {a['ax_s']:.3f} ({a['ax_voxels']:,}) | {ns_sparse:.0f} ns vs {ns_ax:.0f} ns |")
+    print_per_active(pairs)
     print("\n## Scaling (sphere r = 0.6, band 3): cost per doubling should be ~4x (area), not 8x (volume)\n")
     print("| n^3 | total s | x per doubling | voxels evaluated | x per doubling | active | cells visited | peak RSS MiB |")
     print("|---|---|---|---|---|---|---|---|")
     prev = None
-    for n in ([64, 128, 256] if args.quick else [128, 256, 512, 1024]):
+    for n in ([64, 128] if args.quick else [128, 256, 512, 1024]):
         s = in_subprocess("sparse", "sphere", n)
         tr = f"{s['total_s'] / prev['total_s']:.1f}" if prev else "-"
         vr = f"{s['voxels_evaluated'] / prev['voxels_evaluated']:.2f}" if prev else "-"

@@ -261,7 +261,9 @@ def fmt_run(r: Run | None, timeout: float, minus: float = 0.0) -> str:
         return f"> {timeout:.0f} s (stopped)"
     if r.status != "ok" or r.seconds is None:
         return r.status.split(":")[0]  # the message is printed in a comment line above the row
-    return f"{r.seconds - minus:.2f}"
+    if minus:
+        return f"{r.seconds - minus:.2f} (wall {r.seconds:.2f})"  # < 0: within the start-up's noise
+    return f"{r.seconds:.2f}"
 
 
 def fmt_ratio(ours: Run | None, anchor: Run | None, minus: float) -> str:
@@ -271,6 +273,8 @@ def fmt_ratio(ours: Run | None, anchor: Run | None, minus: float) -> str:
         return "> stopped"
     if ours.status != "ok" or ours.seconds is None:
         return "-"
+    if ours.seconds <= minus:
+        return "(below start-up noise)"
     return f"{(ours.seconds - minus) / anchor.seconds:.1f}x"
 
 

@@ -12,7 +12,9 @@ import numpy as np
 
 from pipeline import affine as aa
 from pipeline import rfunctions as rf
+from pipeline import tape as tp
 from pipeline.affine import AffineForm
+from pipeline.tape import Sym
 
 Value = np.ndarray | AffineForm | float
 
@@ -28,25 +30,34 @@ def _lift(x, like: AffineForm) -> AffineForm:
     return AffineForm(c, np.zeros_like(like.g), np.zeros_like(like.e))
 
 
-def _unary(np_fn, aa_fn):
+def _unary(np_fn, aa_fn, code: int):
+    """One function, three interpretations: arrays (values), AffineForms (bounds), Syms (tape)."""
     def fn(x):
+        if isinstance(x, Sym):
+            return x.unary(code)
         return aa_fn(x) if isinstance(x, AffineForm) else np_fn(x)
 
     fn.__name__ = np_fn.__name__ if hasattr(np_fn, "__name__") else aa_fn.__name__
     return fn
 
 
-sqrt = _unary(np.sqrt, aa.sqrt)
-exp = _unary(np.exp, aa.exp)
-log = _unary(np.log, aa.log)
-sin = _unary(np.sin, aa.sin)
-cos = _unary(np.cos, aa.cos)
-abs_ = _unary(np.abs, aa.absolute)
-sqr = _unary(np.square, aa.sqr)
+sqrt = _unary(np.sqrt, aa.sqrt, tp.SQRT)
+exp = _unary(np.exp, aa.exp, tp.EXP)
+log = _unary(np.log, aa.log, tp.LOG)
+sin = _unary(np.sin, aa.sin, tp.SIN)
+cos = _unary(np.cos, aa.cos, tp.COS)
+abs_ = _unary(np.abs, aa.absolute, tp.ABS)
+sqr = _unary(np.square, aa.sqr, tp.SQR)
+
+
+def is_sym(*xs) -> bool:
+    return any(isinstance(x, Sym) for x in xs)
 
 
 def pow_(x, p: float):
     """x**p for a constant exponent; real exponents need x >= 0 (use pow_(abs_(x), p))."""
+    if isinstance(x, Sym):
+        return x.unary(tp.POWC, float(p))
     if isinstance(x, AffineForm):
         return aa.power(x, p)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -54,6 +65,8 @@ def pow_(x, p: float):
 
 
 def minimum(a, b):
+    if is_sym(a, b):
+        return tp.binary(tp.MIN, a, b)
     if is_form(a, b):
         like = a if isinstance(a, AffineForm) else b
         return aa.minimum(_lift(a, like), _lift(b, like))
@@ -61,6 +74,8 @@ def minimum(a, b):
 
 
 def maximum(a, b):
+    if is_sym(a, b):
+        return tp.binary(tp.MAX, a, b)
     if is_form(a, b):
         like = a if isinstance(a, AffineForm) else b
         return aa.maximum(_lift(a, like), _lift(b, like))
@@ -68,6 +83,8 @@ def maximum(a, b):
 
 
 def div(a, b):
+    if is_sym(a, b):
+        return tp.binary(tp.DIV, a, b)
     if is_form(a, b):
         like = a if isinstance(a, AffineForm) else b
         return _lift(a, like) / _lift(b, like)
@@ -89,6 +106,8 @@ def length(*xs):
 def r_and(a, b, family: str = "r0", k: float = rf.SARDF_K, scale: float = np.inf):
     """R-conjunction: intersection of two FRep fields (families of pipeline.rfunctions);
     ``scale``: the magnitude control of :func:`pipeline.rfunctions.compress`."""
+    if is_sym(a, b):
+        return _r_and_sym(a, b, family, k, scale)
     if not is_form(a, b):
         return rf.r_and(a, b, family, k, scale)
     like = a if isinstance(a, AffineForm) else b
@@ -100,6 +119,20 @@ def r_and(a, b, family: str = "r0", k: float = rf.SARDF_K, scale: float = np.inf
     if family == "sardf":
         return compress_form(_sardf_and_bound(a, b, k), scale)
     raise ValueError(f"unknown R-function family {family!r}")
+
+
+def _r_and_sym(a, b, family: str, k: float, scale: float):
+    """The tape clauses of an R-conjunction (min for min_max; r0/sardf then the compression)."""
+    if family == "min_max":
+        return tp.binary(tp.MIN, a, b)
+    if family not in ("r0", "sardf"):
+        raise ValueError(f"unknown R-function family {family!r}")
+    if family == "r0":
+        r = tp.binary(tp.R0AND, a, b)
+    else:
+        s = a if isinstance(a, Sym) else b
+        r = s.tb.emit(tp.SARDFAND, s._lift(a).pos, s._lift(b).pos, float(k))
+    return r.unary(tp.COMPRESS, float(scale)) if np.isfinite(scale) else r
 
 
 def compress_form(r: AffineForm, scale: float) -> AffineForm:

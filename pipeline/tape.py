@@ -1,0 +1,767 @@
+"""The model lowered once to a flat tape, and compiled evaluators over it (issue 13).
+
+**Lowering.** A model tree is traced: every node's own ``field(x, y, z, t)`` formula runs once
+on :class:`Sym` values, which record each operation as a clause (op, a, b, const) instead of
+computing it. Identical clauses are shared (hash-consing: a subtree used twice is one set of
+clauses) and clauses whose operands are constants are folded. So a node type still writes
+its formula once (with :mod:`pipeline.ops`) and gets the tape for free; nodes whose formula
+cannot be traced (oracles that sample meshes, grids or solved fields) make :func:`compile_model`
+return None and the model keeps the node-by-node evaluator.
+
+**Evaluators** (Numba, one clause loop per point or per box; cf. libfive's and Fidget's tapes):
+
+- :func:`eval_blocks`: values at the voxel centres of blocks, each block with its own tape;
+- :func:`bound_boxes`: interval bounds over boxes, each box with its own tape, recording for
+  every ``min``/``max`` clause which operand decides it over the box;
+- :func:`specialise`: from those choices, the box's shortened tape — a ``min`` whose operand
+  intervals do not overlap *is* the lower operand everywhere in the box, so the other operand's
+  clauses are dropped when nothing else uses them. This is exact (the same value to the bit)
+  for ``min``/``max`` (``min_max`` R-functions, boxes, cylinders, clamps). ``r0`` and ``sardf``
+  depend on both operands everywhere and are never pruned (their clauses are monotone, so their
+  bounds are simply the values at the interval ends).
+
+Children of a cell start from their parent's shortened tape, so a union of 10^4 parts costs,
+per voxel, what the few parts near it cost.
+
+Tape layout: arrays ``op, a, b`` (int64) and ``c`` (float64) of one or many tapes back to back;
+tape ``i`` is ``start[i] .. start[i] + length[i]`` and its value is the one of clause
+``start[i] + res[i]``. Operands ``a, b`` are positions within the tape (earlier clauses).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+# --- opcodes ------------------------------------------------------------------------------------
+X, Y, Z, CONST, ADD, SUB, MUL, DIV, NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, MIN, MAX, R0AND, \
+    SARDFAND, COMPRESS = range(22)
+NAMES = ["x", "y", "z", "const", "add", "sub", "mul", "div", "neg", "sqrt", "sqr", "abs", "exp", "log", "sin",
+         "cos", "powc", "min", "max", "r0and", "sardfand", "compress"]
+UNARY = {NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, COMPRESS}
+
+
+class NotTraceable(TypeError):
+    """A node's formula uses something the tape cannot record (an oracle, a Python branch)."""
+
+
+class TapeBuilder:
+    """Collects clauses in order; identical clauses are shared, constant ones folded."""
+
+    def __init__(self) -> None:
+        self.op: list[int] = []
+        self.a: list[int] = []
+        self.b: list[int] = []
+        self.c: list[float] = []
+        self.memo: dict[tuple, int] = {}
+
+    def emit(self, op: int, a: int = -1, b: int = -1, c: float = 0.0) -> Sym:
+        if op == NEG and self.op[a] == NEG:  # -(-v) is v: unions -min(-a, -b) then chain into one min tree
+            return Sym(self, self.a[a])
+        if op in (MIN, MAX) and a == b:  # min(v, v) is v (a part given twice)
+            return Sym(self, a)
+        if op in (ADD, MUL, MIN, MAX, R0AND) and a > b:  # commutative: one key for both orders
+            a, b = b, a
+        key = (op, a, b, c)
+        pos = self.memo.get(key)
+        if pos is None:
+            folded = self._fold(op, a, b, c)
+            if folded is not None:
+                return self.const(folded)
+            pos = len(self.op)
+            self.op.append(op)
+            self.a.append(a)
+            self.b.append(b)
+            self.c.append(c)
+            self.memo[key] = pos
+        return Sym(self, pos)
+
+    def const(self, v: float) -> Sym:
+        v = float(v)
+        key = (CONST, -1, -1, v)
+        pos = self.memo.get(key)
+        if pos is None:
+            pos = len(self.op)
+            self.op.append(CONST)
+            self.a.append(-1)
+            self.b.append(-1)
+            self.c.append(v)
+            self.memo[key] = pos
+        return Sym(self, pos)
+
+    def _fold(self, op: int, a: int, b: int, c: float) -> float | None:
+        args = [a] if op in UNARY else [a, b]
+        if op in (X, Y, Z, CONST) or any(i < 0 or self.op[i] != CONST for i in args):
+            return None
+        va = self.c[a]
+        vb = self.c[b] if op not in UNARY else 0.0
+        with np.errstate(all="ignore"):
+            return float(_scalar_eval(op, va, vb, c))
+
+
+@njit(cache=True)
+def _scalar_eval(op, va, vb, c):
+    return _apply(op, va, vb, c)
+
+
+class Sym:
+    """A traced value: position of its clause in the builder. Arithmetic records clauses."""
+
+    __slots__ = ("tb", "pos")
+    __array_priority__ = 1000  # numpy scalars defer to our operators
+
+    def __init__(self, tb: TapeBuilder, pos: int) -> None:
+        self.tb = tb
+        self.pos = pos
+
+    def _lift(self, other) -> Sym:
+        if isinstance(other, Sym):
+            return other
+        if isinstance(other, (int, float, np.floating, np.integer)) and not isinstance(other, bool):
+            return self.tb.const(float(other))
+        raise NotTraceable(f"cannot trace an operation with {type(other).__name__}")
+
+    def _bin(self, op: int, other, swap: bool = False) -> Sym:
+        o = self._lift(other)
+        a, b = (o, self) if swap else (self, o)
+        return self.tb.emit(op, a.pos, b.pos)
+
+    def __add__(self, o):
+        return self._bin(ADD, o)
+
+    def __radd__(self, o):
+        return self._bin(ADD, o, True)
+
+    def __sub__(self, o):
+        return self._bin(SUB, o)
+
+    def __rsub__(self, o):
+        return self._bin(SUB, o, True)
+
+    def __mul__(self, o):
+        return self._bin(MUL, o)
+
+    def __rmul__(self, o):
+        return self._bin(MUL, o, True)
+
+    def __truediv__(self, o):
+        return self._bin(DIV, o)
+
+    def __rtruediv__(self, o):
+        return self._bin(DIV, o, True)
+
+    def __neg__(self):
+        return self.tb.emit(NEG, self.pos)
+
+    def __pos__(self):
+        return self
+
+    def __bool__(self):
+        raise NotTraceable("a formula branches on a traced value")
+
+    def unary(self, op: int, c: float = 0.0) -> Sym:
+        return self.tb.emit(op, self.pos, -1, c)
+
+
+def binary(op: int, a, b) -> Sym:
+    """``op`` of two values at least one of which is a Sym."""
+    s = a if isinstance(a, Sym) else b
+    return s.tb.emit(op, s._lift(a).pos, s._lift(b).pos)
+
+
+# --- a compiled model ----------------------------------------------------------------------------
+
+
+@dataclass
+class Tape:
+    """One tape (arrays as in the module docstring, a single tape starting at 0)."""
+
+    op: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    res: int
+
+    def __len__(self) -> int:
+        return len(self.op)
+
+    def counts(self) -> dict[str, int]:
+        u, n = np.unique(self.op, return_counts=True)
+        return {NAMES[int(k)]: int(v) for k, v in zip(u, n, strict=True)}
+
+
+def compile_model(model, t: float = 0.0) -> Tape | None:
+    """The model's tape (after dead-clause removal), or None when a node cannot be traced."""
+    tb = TapeBuilder()
+    x, y, z = tb.emit(X), tb.emit(Y), tb.emit(Z)
+    try:
+        with np.errstate(all="ignore"):
+            out = model.field(x, y, z, float(t))
+    except NotTraceable:
+        return None
+    except (TypeError, AttributeError, ValueError):  # a node's formula works on arrays only
+        return None
+    if not isinstance(out, Sym):
+        out = tb.const(float(out))
+    full = (np.array(tb.op, np.int64), np.array(tb.a, np.int64), np.array(tb.b, np.int64),
+            np.array(tb.c, np.float64))
+    op, a, b, c, res = _compact(*full, out.pos)
+    return Tape(op, a, b, c, res)
+
+
+def bound_with(tape: Tape, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Interval bounds of one tape over boxes lo..hi (B, 3)."""
+    lo = np.ascontiguousarray(lo, dtype=np.float64).reshape(-1, 3)
+    hi = np.ascontiguousarray(hi, dtype=np.float64).reshape(-1, 3)
+    n = len(lo)
+    one = np.zeros(1, np.int64)
+    choff = np.arange(n, dtype=np.int64) * len(tape)
+    choices = np.zeros(n * len(tape), np.int8)
+    return bound_boxes(lo, hi, np.zeros(n, np.int64), one, np.array([len(tape)]), np.array([tape.res]),
+                       tape.op, tape.a, tape.b, tape.c, max(len(tape), 1), choff, choices)
+
+
+def evaluate_with(tape: Tape, points: np.ndarray) -> np.ndarray:
+    """Values of one tape at points (N, 3)."""
+    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    return eval_points(p, np.zeros(1, np.int64), np.array([len(tape)]), np.array([tape.res]), tape.op, tape.a,
+                       tape.b, tape.c)
+
+
+def _compact(op, a, b, c, res):
+    """Keep the clauses the result depends on (tracing may leave unused ones), renumbered."""
+    n = len(op)
+    alias = np.arange(n, dtype=np.int64)
+    choice = np.zeros(n, np.int8)
+    nop, na, nb, nc, nres = _specialise_one(op, a, b, c, alias, choice, np.int64(res))
+    return nop, na, nb, nc, nres
+
+
+# --- the clause arithmetic (Numba) -----------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _r0and(f1, f2):
+    s = f1 + f2
+    rho = math.hypot(f1, f2)
+    return 2.0 * f1 * f2 / (s + rho) if s > 0 else s - rho
+
+
+@njit(cache=True, inline="always")
+def _sardfand(f1, f2, k):
+    rho = math.hypot(f1, f2)
+    u = f1 - f2
+    w = k * rho
+    if abs(u) >= w:
+        return min(f1, f2)
+    return 0.5 * (f1 + f2 - (u * u + w * w) / (2.0 * w))
+
+
+@njit(cache=True, inline="always")
+def _compress(f, cc):
+    a = abs(f)
+    if not a > cc:
+        return f
+    r = cc * (1.0 + math.log(a / cc))
+    return r if f > 0 else -r
+
+
+@njit(cache=True, inline="always")
+def _powc(v, p):
+    if v < 0.0 and p != math.floor(p):
+        return math.nan
+    if v == 0.0 and p < 0:
+        return math.inf
+    return v ** p
+
+
+@njit(cache=True)
+def _apply(op, va, vb, c):
+    """The value of one clause (twin of numpy's semantics in pipeline.ops / rfunctions)."""
+    if op == ADD:
+        return va + vb
+    if op == SUB:
+        return va - vb
+    if op == MUL:
+        return va * vb
+    if op == DIV:
+        if vb == 0.0:
+            return math.nan if va == 0.0 or va != va else math.copysign(math.inf, va) * math.copysign(1.0, vb)
+        return va / vb
+    if op == NEG:
+        return -va
+    if op == SQRT:
+        return math.sqrt(va) if va >= 0.0 else math.nan
+    if op == SQR:
+        return va * va
+    if op == ABS:
+        return abs(va)
+    if op == EXP:
+        return math.exp(va) if va < 709.7 else math.inf
+    if op == LOG:
+        if va > 0.0:
+            return math.log(va)
+        return -math.inf if va == 0.0 else math.nan
+    if op == SIN:
+        return math.sin(va)
+    if op == COS:
+        return math.cos(va)
+    if op == POWC:
+        return _powc(va, c)
+    if op == MIN:
+        return min(va, vb) if va == va and vb == vb else math.nan
+    if op == MAX:
+        return max(va, vb) if va == va and vb == vb else math.nan
+    if op == R0AND:
+        return _r0and(va, vb)
+    if op == SARDFAND:
+        return _sardfand(va, vb, c)
+    if op == COMPRESS:
+        return _compress(va, c)
+    return c  # CONST
+
+
+@njit(cache=True)
+def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m):
+    """Clause-major: each clause runs over the m points of the batch (the dispatch on the
+    opcode is paid once per clause, the inner loops are plain arithmetic)."""
+    for k in range(n):
+        o = op[s + k]
+        ck = c[s + k]
+        if o == X:
+            reg[k, :m] = px[:m]
+            continue
+        if o == Y:
+            reg[k, :m] = py[:m]
+            continue
+        if o == Z:
+            reg[k, :m] = pz[:m]
+            continue
+        if o == CONST:
+            reg[k, :m] = ck
+            continue
+        ia, ib = a[s + k], b[s + k]
+        if o == ADD:
+            for v in range(m):
+                reg[k, v] = reg[ia, v] + reg[ib, v]
+        elif o == SUB:
+            for v in range(m):
+                reg[k, v] = reg[ia, v] - reg[ib, v]
+        elif o == MUL:
+            for v in range(m):
+                reg[k, v] = reg[ia, v] * reg[ib, v]
+        elif o == SQR:
+            for v in range(m):
+                reg[k, v] = reg[ia, v] * reg[ia, v]
+        elif o == NEG:
+            for v in range(m):
+                reg[k, v] = -reg[ia, v]
+        elif o == MIN:
+            for v in range(m):
+                reg[k, v] = _apply(MIN, reg[ia, v], reg[ib, v], ck)
+        elif o == MAX:
+            for v in range(m):
+                reg[k, v] = _apply(MAX, reg[ia, v], reg[ib, v], ck)
+        elif ib >= 0:
+            for v in range(m):
+                reg[k, v] = _apply(o, reg[ia, v], reg[ib, v], ck)
+        else:
+            for v in range(m):
+                reg[k, v] = _apply(o, reg[ia, v], 0.0, ck)
+    return reg[res]
+
+
+@njit(parallel=True, cache=True)
+def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, maxlen):
+    """Values (N, block, block, block) at the voxel centres of blocks, block n with tape
+    ``tape_of[n]`` (index into start/length/res)."""
+    n = origins.shape[0]
+    m = block * block * block
+    out = np.empty((n, block, block, block))
+    for q in prange(n):
+        reg = np.empty((max(maxlen, 1), m))
+        px = np.empty(m)
+        py = np.empty(m)
+        pz = np.empty(m)
+        v = 0
+        for i in range(block):
+            for j in range(block):
+                for k in range(block):
+                    px[v] = (origins[q, 0] + i) * h
+                    py[v] = (origins[q, 1] + j) * h
+                    pz[v] = (origins[q, 2] + k) * h
+                    v += 1
+        tp = tape_of[q]
+        vals = _run_batch(op, a, b, c, start[tp], length[tp], res[tp], px, py, pz, reg, m)
+        v = 0
+        for i in range(block):
+            for j in range(block):
+                for k in range(block):
+                    out[q, i, j, k] = vals[v]
+                    v += 1
+    return out
+
+
+@njit(parallel=True, cache=True)
+def eval_points(pts, start, length, res, op, a, b, c):
+    """Values of tape 0 at points (N, 3), in batches of 64."""
+    n = pts.shape[0]
+    out = np.empty(n)
+    ln = length[0]
+    nb = (n + 63) // 64
+    for q in prange(nb):
+        reg = np.empty((max(ln, 1), 64))
+        lo = q * 64
+        m = min(64, n - lo)
+        vals = _run_batch(op, a, b, c, start[0], ln, res[0], pts[lo:lo + m, 0].copy(), pts[lo:lo + m, 1].copy(),
+                          pts[lo:lo + m, 2].copy(), reg, m)
+        out[lo:lo + m] = vals[:m]
+    return out
+
+
+# --- interval bounds --------------------------------------------------------------------------------
+
+_UP = 1.0 + 4.0 * 2.220446049250313e-16  # outward rounding of every interval end
+_TINY = 1e-300
+
+
+@njit(cache=True, inline="always")
+def _down(v):
+    return v - abs(v) * (_UP - 1.0) - _TINY if v == v else -math.inf
+
+
+@njit(cache=True, inline="always")
+def _upv(v):
+    return v + abs(v) * (_UP - 1.0) + _TINY if v == v else math.inf
+
+
+@njit(cache=True)
+def _trig_range(lo, hi, phase):
+    """Range of sin(x + phase) over [lo, hi] (phase 0: sin, pi/2: cos)."""
+    if not (hi - lo < 2.0 * math.pi) or lo != lo or hi != hi:
+        return -1.0, 1.0
+    a, b = lo + phase, hi + phase
+    s1, s2 = math.sin(a), math.sin(b)
+    mn, mx = min(s1, s2), max(s1, s2)
+    # maxima at pi/2 + 2k pi, minima at -pi/2 + 2k pi
+    k = math.ceil((a - 0.5 * math.pi) / (2.0 * math.pi))
+    if 0.5 * math.pi + 2.0 * math.pi * k <= b:
+        mx = 1.0
+    k = math.ceil((a + 0.5 * math.pi) / (2.0 * math.pi))
+    if -0.5 * math.pi + 2.0 * math.pi * k <= b:
+        mn = -1.0
+    return mn, mx
+
+
+@njit(cache=True)
+def _interval(o, alo, ahi, blo, bhi, c):
+    """Interval of one clause; returns (lo, hi, choice): choice 1/2 when min/max is decided by
+    operand a/b over the whole interval, else 0."""
+    if o == ADD:
+        return alo + blo, ahi + bhi, 0
+    if o == SUB:
+        return alo - bhi, ahi - blo, 0
+    if o == MUL:
+        p1, p2, p3, p4 = alo * blo, alo * bhi, ahi * blo, ahi * bhi
+        lo = min(min(p1, p2), min(p3, p4))
+        hi = max(max(p1, p2), max(p3, p4))
+        if lo != lo or hi != hi:
+            return -math.inf, math.inf, 0
+        return lo, hi, 0
+    if o == DIV:
+        if blo <= 0.0 <= bhi:
+            return -math.inf, math.inf, 0
+        p1, p2, p3, p4 = alo / blo, alo / bhi, ahi / blo, ahi / bhi
+        return min(min(p1, p2), min(p3, p4)), max(max(p1, p2), max(p3, p4)), 0
+    if o == NEG:
+        return -ahi, -alo, 0
+    if o == SQRT:
+        return math.sqrt(max(alo, 0.0)), math.sqrt(max(ahi, 0.0)), 0
+    if o == SQR:
+        if alo >= 0.0:
+            return alo * alo, ahi * ahi, 0
+        if ahi <= 0.0:
+            return ahi * ahi, alo * alo, 0
+        return 0.0, max(alo * alo, ahi * ahi), 0
+    if o == ABS:
+        if alo >= 0.0:
+            return alo, ahi, 0
+        if ahi <= 0.0:
+            return -ahi, -alo, 0
+        return 0.0, max(-alo, ahi), 0
+    if o == EXP:
+        return _apply(EXP, alo, 0.0, 0.0), _apply(EXP, ahi, 0.0, 0.0), 0
+    if o == LOG:
+        return _apply(LOG, max(alo, 0.0), 0.0, 0.0), _apply(LOG, max(ahi, 0.0), 0.0, 0.0), 0
+    if o == SIN:
+        lo, hi = _trig_range(alo, ahi, 0.0)
+        return lo, hi, 0
+    if o == COS:
+        lo, hi = _trig_range(alo, ahi, 0.5 * math.pi)
+        return lo, hi, 0
+    if o == POWC:
+        return _pow_interval(alo, ahi, c)
+    if o == MIN:
+        if ahi < blo:
+            return alo, ahi, 1
+        if bhi < alo:
+            return blo, bhi, 2
+        return min(alo, blo), min(ahi, bhi), 0
+    if o == MAX:
+        if alo > bhi:
+            return alo, ahi, 1
+        if blo > ahi:
+            return blo, bhi, 2
+        return max(alo, blo), max(ahi, bhi), 0
+    if o == R0AND:  # nondecreasing in both arguments
+        return _r0and(alo, blo), _r0and(ahi, bhi), 0
+    if o == SARDFAND:
+        return _sardfand(alo, blo, c), _sardfand(ahi, bhi, c), 0
+    if o == COMPRESS:
+        return _compress(alo, c), _compress(ahi, c), 0
+    return c, c, 0
+
+
+@njit(cache=True)
+def _pow_interval(lo, hi, p):
+    if p == math.floor(p):
+        n = int(p)
+        if n >= 0 and n % 2 == 0:  # even: like sqr
+            if lo >= 0.0:
+                return lo ** p, hi ** p, 0
+            if hi <= 0.0:
+                return hi ** p, lo ** p, 0
+            return 0.0, max(lo ** p, hi ** p), 0
+        if n >= 0:  # odd: increasing
+            return lo ** p, hi ** p, 0
+        if lo > 0.0:  # negative powers: decreasing on x > 0
+            return hi ** p, lo ** p, 0
+        if hi < 0.0:
+            a, b = lo ** p, hi ** p
+            return min(a, b), max(a, b), 0
+        return -math.inf, math.inf, 0
+    if hi < 0.0:
+        return math.nan, math.nan, 0
+    lo = max(lo, 0.0)
+    if p > 0:
+        return lo ** p, hi ** p, 0
+    return (hi ** p if hi > 0 else math.inf), (lo ** p if lo > 0 else math.inf), 0
+
+
+@njit(parallel=True, cache=True)
+def bound_boxes(lo, hi, tape_of, start, length, res, op, a, b, c, maxlen, choff, choices):
+    """Interval (flo, fhi) of box q's tape over [lo_q, hi_q]; ``choices[choff[q] + k]`` receives
+    the decision of clause k of box q's tape (1/2: operand a/b decides the min/max, 0: not)."""
+    nbox = lo.shape[0]
+    flo = np.empty(nbox)
+    fhi = np.empty(nbox)
+    per = 64 if nbox >= 1024 else 1  # few boxes (the top levels, long tapes): one per thread
+    for ch in prange((nbox + per - 1) // per):
+        rlo = np.empty(maxlen)  # scratch once per chunk of boxes, not per box
+        rhi = np.empty(maxlen)
+        tlo = np.empty(maxlen)
+        thi = np.empty(maxlen)
+        for q in range(ch * per, min(nbox, (ch + 1) * per)):
+            tp = tape_of[q]
+            _bound_one(lo[q], hi[q], start[tp], length[tp], op, a, b, c, rlo, rhi, choices, choff[q])
+            flo[q] = rlo[res[tp]]
+            fhi[q] = rhi[res[tp]]
+            _relevance(op, a, start[tp], length[tp], res[tp], b, rlo, rhi, choices, choff[q], tlo, thi)
+    return flo, fhi
+
+
+@njit(cache=True)
+def _bound_one(lo, hi, s, ln, op, a, b, c, rlo, rhi, choices, ch0):
+    for k in range(ln):
+        o = op[s + k]
+        if o == X:
+            rlo[k], rhi[k] = lo[0], hi[0]
+        elif o == Y:
+            rlo[k], rhi[k] = lo[1], hi[1]
+        elif o == Z:
+            rlo[k], rhi[k] = lo[2], hi[2]
+        elif o == CONST:
+            rlo[k], rhi[k] = c[s + k], c[s + k]
+        else:
+            ia, ib = a[s + k], b[s + k]
+            blo = rlo[ib] if ib >= 0 else 0.0
+            bhi = rhi[ib] if ib >= 0 else 0.0
+            vlo, vhi, chc = _interval(o, rlo[ia], rhi[ia], blo, bhi, c[s + k])
+            rlo[k], rhi[k] = _down(vlo), _upv(vhi)
+            choices[ch0 + k] = chc
+
+
+@njit(cache=True)
+def _relevance(op, a, s, ln, res, b, rlo, rhi, choices, ch0, tlo, thi):
+    """Prune min/max operands that cannot matter anywhere in the box, looking past the sibling:
+    below ``tlo[k]`` clause k's value does not change the tape's result (it is under a max that
+    something else exceeds), above ``thi[k]`` likewise for a min. Thresholds flow down through
+    min, max and neg; a value used by several clauses keeps the least restrictive threshold.
+    An operand whose whole interval lies beyond its threshold is dropped (exact)."""
+    tlo[:ln] = np.inf
+    thi[:ln] = -np.inf
+    tlo[res] = -np.inf
+    thi[res] = np.inf
+    for k in range(ln - 1, -1, -1):
+        o = op[s + k]
+        if o in (X, Y, Z, CONST):
+            continue
+        ia, ib = a[s + k], b[s + k]
+        if o == MAX:
+            ta, tb = max(tlo[k], rlo[ib]), max(tlo[k], rlo[ia])
+            if rhi[ia] < ta:
+                choices[ch0 + k] = 2
+                tlo[ib] = min(tlo[ib], tlo[k])
+                thi[ib] = max(thi[ib], thi[k])
+                continue
+            if rhi[ib] < tb:
+                choices[ch0 + k] = 1
+                tlo[ia] = min(tlo[ia], tlo[k])
+                thi[ia] = max(thi[ia], thi[k])
+                continue
+            tlo[ia], tlo[ib] = min(tlo[ia], ta), min(tlo[ib], tb)
+            thi[ia], thi[ib] = np.inf, np.inf
+        elif o == MIN:
+            ta, tb = min(thi[k], rhi[ib]), min(thi[k], rhi[ia])
+            if rlo[ia] > ta:
+                choices[ch0 + k] = 2
+                tlo[ib] = min(tlo[ib], tlo[k])
+                thi[ib] = max(thi[ib], thi[k])
+                continue
+            if rlo[ib] > tb:
+                choices[ch0 + k] = 1
+                tlo[ia] = min(tlo[ia], tlo[k])
+                thi[ia] = max(thi[ia], thi[k])
+                continue
+            thi[ia], thi[ib] = max(thi[ia], ta), max(thi[ib], tb)
+            tlo[ia], tlo[ib] = -np.inf, -np.inf
+        elif o == NEG:
+            tlo[ia] = min(tlo[ia], -thi[k])
+            thi[ia] = max(thi[ia], -tlo[k])
+        else:
+            tlo[ia] = -np.inf
+            thi[ia] = np.inf
+            if ib >= 0:
+                tlo[ib] = -np.inf
+                thi[ib] = np.inf
+
+
+# --- specialisation ----------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def _specialise_one(op, a, b, c, alias, choice, res):
+    """The tape with every decided min/max replaced by its deciding operand and the clauses
+    nothing uses any more removed (exact: see the module docstring). ``alias``/``choice`` are
+    scratch/decisions of length len(op)."""
+    n = len(op)
+    for k in range(n):
+        alias[k] = k
+        if (op[k] == MIN or op[k] == MAX) and choice[k] != 0:
+            alias[k] = alias[a[k]] if choice[k] == 1 else alias[b[k]]
+    live = np.zeros(n, np.bool_)
+    live[alias[res]] = True
+    for k in range(n - 1, -1, -1):
+        if live[k] and alias[k] == k:
+            if a[k] >= 0:
+                live[alias[a[k]]] = True
+            if b[k] >= 0:
+                live[alias[b[k]]] = True
+    newpos = np.full(n, -1, np.int64)
+    m = 0
+    for k in range(n):
+        if live[k] and alias[k] == k:
+            newpos[k] = m
+            m += 1
+    nop = np.empty(m, np.int64)
+    na = np.empty(m, np.int64)
+    nb = np.empty(m, np.int64)
+    nc = np.empty(m, np.float64)
+    for k in range(n):
+        p = newpos[k]
+        if p < 0:
+            continue
+        nop[p] = op[k]
+        na[p] = newpos[alias[a[k]]] if a[k] >= 0 else -1
+        nb[p] = newpos[alias[b[k]]] if b[k] >= 0 else -1
+        nc[p] = c[k]
+    return nop, na, nb, nc, newpos[alias[res]]
+
+
+@njit(cache=True)
+def _spec_into(op, a, b, c, s, ln, res, choices, ch0, alias, live, newpos, oop, oa, ob, oc, o0, write):
+    """:func:`_specialise_one` of the tape at s..s+ln with decisions at choices[ch0:], written
+    into the output arrays from o0 on, with caller-owned scratch (no allocation per cell).
+    Returns (clauses written, result position)."""
+    for k in range(ln):
+        alias[k] = k
+        if (op[s + k] == MIN or op[s + k] == MAX) and choices[ch0 + k] != 0:
+            alias[k] = alias[a[s + k]] if choices[ch0 + k] == 1 else alias[b[s + k]]
+        live[k] = False
+    live[alias[res]] = True
+    for k in range(ln - 1, -1, -1):
+        if live[k] and alias[k] == k:
+            if a[s + k] >= 0:
+                live[alias[a[s + k]]] = True
+            if b[s + k] >= 0:
+                live[alias[b[s + k]]] = True
+    m = 0
+    for k in range(ln):
+        if live[k] and alias[k] == k:
+            newpos[k] = m
+            if not write:
+                m += 1
+                continue
+            oop[o0 + m] = op[s + k]
+            oa[o0 + m] = newpos[alias[a[s + k]]] if a[s + k] >= 0 else -1
+            ob[o0 + m] = newpos[alias[b[s + k]]] if b[s + k] >= 0 else -1
+            oc[o0 + m] = c[s + k]
+            m += 1
+    return m, newpos[alias[res]]
+
+
+@njit(parallel=True, cache=True)
+def specialise(keep, tape_of, start, length, res, op, a, b, c, choff, choices):
+    """The shortened tape of every kept box (``keep``: box indices), as a new pool; returns
+    (start, length, res, op, a, b, c) with tape i belonging to box keep[i]. Two parallel passes
+    over the boxes: count each shortened tape, then write it at its offset (no room is reserved
+    for the parents' lengths: at fine levels that would be gigabytes)."""
+    nk = len(keep)
+    maxlen = 1
+    for i in range(nk):
+        maxlen = max(maxlen, length[tape_of[keep[i]]])
+    nlen = np.empty(nk, np.int64)
+    nres = np.empty(nk, np.int64)
+    dummy_i = np.empty(0, np.int64)
+    dummy_f = np.empty(0, np.float64)
+    per = 16
+    nch = (nk + per - 1) // per
+    for ch in prange(nch):
+        alias = np.empty(maxlen, np.int64)
+        live = np.empty(maxlen, np.bool_)
+        newpos = np.empty(maxlen, np.int64)
+        for i in range(ch * per, min(nk, (ch + 1) * per)):
+            q = keep[i]
+            tp = tape_of[q]
+            m, r = _spec_into(op, a, b, c, start[tp], length[tp], res[tp], choices, choff[q], alias, live, newpos,
+                              dummy_i, dummy_i, dummy_i, dummy_f, 0, False)
+            nlen[i], nres[i] = m, r
+    nstart = np.zeros(nk, np.int64)
+    for i in range(1, nk):
+        nstart[i] = nstart[i - 1] + nlen[i - 1]
+    total = nstart[nk - 1] + nlen[nk - 1] if nk else 0
+    pop, pa, pb, pc = (np.empty(total, np.int64), np.empty(total, np.int64), np.empty(total, np.int64),
+                       np.empty(total, np.float64))
+    for ch in prange(nch):
+        alias = np.empty(maxlen, np.int64)
+        live = np.empty(maxlen, np.bool_)
+        newpos = np.empty(maxlen, np.int64)
+        for i in range(ch * per, min(nk, (ch + 1) * per)):
+            q = keep[i]
+            tp = tape_of[q]
+            _spec_into(op, a, b, c, start[tp], length[tp], res[tp], choices, choff[q], alias, live, newpos,
+                       pop, pa, pb, pc, nstart[i], True)
+    return nstart, nlen, nres, pop, pa, pb, pc

@@ -1,0 +1,136 @@
+"""Conformance of the compiled tape (pipeline.tape) over every node type and random trees:
+
+- the tape's values equal the node-by-node evaluation (to float rounding);
+- its interval bounds contain every value in the box;
+- a box's specialised tape gives the same values as the full tape in that box, bit for bit
+  (min/max pruning is exact), and is no longer;
+- nodes that cannot be traced (oracles) are reported as such, and keep the old evaluator.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from pipeline import tape as T
+from pipeline.config import load_job
+from tests.test_written_grids import frep_config, tree
+
+NODES = {
+    "sphere": "sphere: {center: [0.1, -0.2, 0.05], radius: 0.6}",
+    "box": "box: {min: [-0.5, -0.4, -0.3], max: [0.6, 0.5, 0.4]}",
+    "cylinder": "cylinder: {center: [0, 0, 0], radius: 0.3, axis: x, height: 1.2}",
+    "cone": "cone: {radius: 0.5, height: 1.0}",
+    "torus": "torus: {center: [0, 0, 0], major: 0.6, minor: 0.2, axis: y}",
+    "ellipsoid": "ellipsoid: {center: [0, 0, 0], radii: [0.7, 0.4, 0.3]}",
+    "superellipsoid": "superellipsoid: {radii: [0.8, 0.7, 0.6], exponents: [0.3, 0.6]}",
+    "halfspace": "halfspace: {normal: [0.3, 0.4, 0.866], offset: 0.1}",
+    "blobby": "blobby: {blobs: [{center: [0, 0, 0], radius: 0.5}, {center: [0.4, 0, 0], radius: 0.4}]}",
+    "expr": 'expr: "1 - x^2 - y^2 - z^2 + 0.2 * sin(7 * x) * cos(5 * y) - exp(-z) / 9 + log(2 + x)"',
+    "union_min_max": "union: {of: [{sphere: {radius: 0.4}}, {box: {min: [0, 0, 0], max: [0.7, 0.7, 0.7]}}], rfunc: min_max}",
+    "intersection_r0": "intersection: {of: [{sphere: {radius: 0.7}}, {box: {min: [-0.5, -0.5, -0.5], max: [0.5, 0.5, 0.5]}}], rfunc: r0}",
+    "difference_sardf": "difference: {of: [{sphere: {radius: 0.7}}, {cylinder: {radius: 0.2}}], rfunc: sardf}",
+    "complement": "complement: {of: {sphere: {radius: 0.5}}}",
+    "blend": "blend: {of: [{sphere: {center: [-0.3, 0, 0], radius: 0.4}}, {sphere: {center: [0.3, 0, 0], radius: 0.4}}], a0: 0.2}",
+    "offset": "offset: {distance: 0.1, of: {box: {min: [-0.4, -0.4, -0.4], max: [0.4, 0.4, 0.4]}}}",
+    "morph": "morph: {from: {sphere: {radius: 0.5}}, to: {box: {min: [-0.4, -0.4, -0.4], max: [0.4, 0.4, 0.4]}}, t: 0.3}",
+    "translate": "translate: {by: [0.1, 0.2, -0.1], of: {torus: {major: 0.5, minor: 0.15}}}",
+    "rotate": "rotate: {axis: [1, 1, 0], angle: 30, of: {box: {min: [-0.4, -0.2, -0.3], max: [0.4, 0.2, 0.3]}}}",
+    "scale": "scale: {by: [1.5, 0.8, 1.0], of: {sphere: {radius: 0.4}}}",
+    "twist": "twist: {rate: 90, of: {box: {min: [-0.3, -0.1, -0.6], max: [0.3, 0.1, 0.6]}}}",
+    "taper": "taper: {range: [-0.5, 0.5], scale: [0.5, 1.0], of: {cylinder: {radius: 0.4, height: 1.0}}}",
+    "bend": "bend: {rate: 1.0, of: {box: {min: [-0.6, -0.1, -0.1], max: [0.6, 0.1, 0.1]}}}",
+}
+
+
+def job_of(tmp_path, model: str):
+    cfg = tmp_path / "m.yaml"
+    cfg.write_text(frep_config(model, res=16))
+    return load_job(cfg)
+
+
+def check_tape(job, seed: int = 0) -> T.Tape:
+    tp = T.compile_model(job.model, job.t)
+    assert tp is not None
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-1.2, 1.2, (4000, 3))
+    ref = job.model.evaluate(p, job.t)
+    got = T.evaluate_with(tp, p)
+    ok = np.isfinite(ref)
+    np.testing.assert_array_equal(np.isfinite(got), ok)
+    np.testing.assert_allclose(got[ok], ref[ok], rtol=1e-9, atol=1e-12)
+    # boxes of several sizes: bounds contain the values; the specialised tape is exact there
+    for size in (0.5, 0.12, 0.03):
+        lo = rng.uniform(-1.2, 1.2 - size, (40, 3))
+        hi = lo + size
+        flo, fhi = T.bound_with(tp, lo, hi)
+        for q in range(len(lo)):
+            pts = rng.uniform(lo[q], hi[q], (64, 3))
+            v = T.evaluate_with(tp, pts)
+            fin = np.isfinite(v)
+            assert np.all(v[fin] >= flo[q]) and np.all(v[fin] <= fhi[q]), (size, q)
+            sub = specialised(tp, lo[q], hi[q])
+            assert len(sub) <= len(tp)
+            np.testing.assert_array_equal(T.evaluate_with(sub, pts), v)
+    return tp
+
+
+def specialised(tp: T.Tape, lo: np.ndarray, hi: np.ndarray) -> T.Tape:
+    """The tape of one box, through the same kernels the voxeliser uses."""
+    n = len(tp)
+    choices = np.zeros(n, np.int8)
+    T.bound_boxes(lo[None], hi[None], np.zeros(1, np.int64), np.zeros(1, np.int64), np.array([n]),
+                  np.array([tp.res]), tp.op, tp.a, tp.b, tp.c, n, np.zeros(1, np.int64), choices)
+    s, ln, r, op, a, b, c = T.specialise(np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
+                                         np.array([n]), np.array([tp.res]), tp.op, tp.a, tp.b, tp.c,
+                                         np.zeros(1, np.int64), choices)
+    return T.Tape(op, a, b, c, int(r[0]))
+
+
+@pytest.mark.parametrize("name", sorted(NODES))
+def test_every_traceable_node_conforms(tmp_path, name) -> None:
+    check_tape(job_of(tmp_path, NODES[name]))
+
+
+def test_every_registered_node_type_is_covered() -> None:
+    from pipeline.nodes import REGISTRY
+
+    covered = {k.split("_")[0] for k in NODES} | {"mesh", "grid", "hfrep", "component"}
+    assert set(REGISTRY) <= covered, set(REGISTRY) - covered
+
+
+def test_oracle_nodes_are_not_traced(tmp_path) -> None:
+    """Nodes that sample a mesh's BSP-tree keep the node-by-node evaluator (reported in stats)."""
+    import trimesh
+
+    path = tmp_path / "ico.off"
+    trimesh.creation.icosphere(1, 0.6).export(str(path))
+    job = job_of(tmp_path, f"union: [{{mesh: {{path: {path}}}}}, {{sphere: {{radius: 0.2}}}}]")
+    assert T.compile_model(job.model, job.t) is None
+
+
+def test_union_of_many_parts_specialises_to_the_few_near_a_cell(tmp_path) -> None:
+    rng = np.random.default_rng(2)
+    kids = ", ".join(f"{{sphere: {{center: [{x:.3f}, {y:.3f}, {z:.3f}], radius: 0.04}}}}"
+                     for x, y, z in rng.uniform(-1, 1, (500, 3)))
+    job = job_of(tmp_path, f"union: {{of: [{kids}], rfunc: min_max}}")
+    tp = check_tape(job)
+    c = np.array([0.0, 0.0, 0.0])
+    sub = specialised(tp, c - 0.05, c + 0.05)
+    assert len(sub) < len(tp) / 20, (len(sub), len(tp))
+
+
+def test_shared_subtrees_are_one_set_of_clauses(tmp_path) -> None:
+    one = T.compile_model(job_of(tmp_path, "sphere: {radius: 0.5}").model)
+    twice = T.compile_model(job_of(tmp_path, "union: {of: [{sphere: {radius: 0.5}}, {sphere: {radius: 0.5}}], "
+                                             "rfunc: min_max}").model)
+    assert len(twice) <= len(one) + 1
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
+                                                                 HealthCheck.too_slow])
+@given(model=tree(), seed=st.integers(0, 100))
+def test_random_trees_conform(tmp_path_factory, model, seed) -> None:
+    check_tape(job_of(tmp_path_factory.mktemp("t"), model), seed)

@@ -134,3 +134,17 @@ def test_shared_subtrees_are_one_set_of_clauses(tmp_path) -> None:
 @given(model=tree(), seed=st.integers(0, 100))
 def test_random_trees_conform(tmp_path_factory, model, seed) -> None:
     check_tape(job_of(tmp_path_factory.mktemp("t"), model), seed)
+
+
+def test_min_max_mesh_lowers_to_planes_and_prunes(tmp_path) -> None:
+    """A min_max BSP-field becomes tape clauses (planes, min, max): the tape equals the BSP
+    kernel, and a small cell keeps only a few of its planes."""
+    import trimesh
+
+    path = tmp_path / "ico.off"
+    trimesh.creation.icosphere(2, 0.7).export(str(path))
+    job = job_of(tmp_path, f"mesh: {{path: {path}, rfunc: min_max}}")
+    tp = check_tape(job)
+    c = np.array([0.7, 0.0, 0.0])
+    sub = specialised(tp, c - 0.03, c + 0.03)
+    assert len(sub) < len(tp) / 10, (len(sub), len(tp))

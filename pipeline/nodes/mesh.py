@@ -12,6 +12,7 @@ from pipeline.affine import AffineForm
 from pipeline.errors import InputError
 from pipeline.meshio import MeshError, load_mesh
 from pipeline.nodes.base import Node, Params, register
+from pipeline.tape import NotTraceable, Sym
 
 
 @register("mesh")
@@ -83,6 +84,8 @@ class Mesh(Node):
         return fixed
 
     def field(self, x, y, z, t):
+        if isinstance(x, Sym) or isinstance(y, Sym) or isinstance(z, Sym):
+            return self._lower(x, y, z)
         if isinstance(x, AffineForm):
             boxes = [AffineForm.interval(v) if isinstance(v, AffineForm) else (v, v) for v in (x, y, z)]
             lo = np.stack([np.broadcast_to(b[0], x.c.shape) for b in boxes], axis=1)
@@ -92,6 +95,41 @@ class Mesh(Node):
         shape = np.broadcast(x, y, z).shape
         pts = np.stack([np.broadcast_to(v, shape).ravel() for v in (x, y, z)], axis=1)
         return self.impl.evaluate(pts).reshape(shape)
+
+    def _lower(self, x, y, z):
+        """The BSP-field as tape clauses (section 3.3.2's formula node by node), for ``min_max``:
+        then every node is a min or max that the per-cell specialisation can prune exactly, so a
+        cell keeps only the planes near it. r0 and sardf depend on every node everywhere (no exact
+        pruning), and the BSP kernel evaluates them faster than a tape of the same formula, so
+        they stay an oracle; the ADF field likewise."""
+        from pipeline import ops
+        from pipeline.bsp import GENERAL, LEAF, NEG_ONLY, POS_ONLY, SPECIAL_B
+
+        if self.params.method != "bsp" or self.params.rfunc != "min_max":
+            raise NotTraceable("mesh fields other than min_max BSP-fields are evaluated by their kernel")
+        tree = self.impl.tree
+        fam = "min_max"
+        vals: list = []
+        for j in range(len(tree.mode)):
+            n, off = tree.normals[j], float(tree.offsets[j])
+            fa = x * float(n[0]) + y * float(n[1]) + z * float(n[2]) + off
+            fb = vals[tree.pos[j]] if tree.pos[j] >= 0 else None
+            fc = vals[tree.neg[j]] if tree.neg[j] >= 0 else None
+            m = tree.mode[j]
+            if m == LEAF:
+                v = fa
+            elif m == POS_ONLY:
+                v = ops.r_and(fa, fb, fam)
+            elif m == NEG_ONLY:
+                v = ops.r_or(fa, fc, fam)
+            elif m == GENERAL:
+                v = ops.r_or(ops.r_and(ops.r_or(fa, fc, fam), fb, fam), ops.r_and(-fa, fc, fam), fam)
+            elif m == SPECIAL_B:
+                v = ops.r_and(ops.r_or(fa, fc, fam), fb, fam)
+            else:
+                v = ops.r_and(ops.r_or(-fa, fb, fam), fc, fam)
+            vals.append(v)
+        return vals[-1]
 
     def describe(self) -> dict:
         """Manifest entry: the mesh checks and the BSP-tree counts (Table 1 of bsp-fields)."""

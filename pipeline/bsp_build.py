@@ -255,15 +255,13 @@ def _select(tri, own, items, n_items, polys, npoly, cands, ncand, pn, eps, maxc,
             bside = side
     if bside == 0:
         return best, 0
-    if not exact:  # sampled one-sided planes are kept only if exactly one-sided and split-free
-        nchain = _verify_chain(tri, own, items, n_items, polys, npoly, pn, eps, pmin, pmax,
-                               chain, cside, nchain, best)
-        if nchain == 0:
-            return best, 0
-    for i in range(nchain):  # best first
+    for i in range(nchain):  # best first (so that a sampled best that fails costs one scan)
         if chain[i] == best:
             chain[i], chain[0] = chain[0], chain[i]
             cside[i], cside[0] = cside[0], cside[i]
+    if not exact:  # sampled one-sided planes are kept only if exactly one-sided and split-free
+        nchain = _verify_chain(tri, own, items, n_items, polys, npoly, pn, eps, pmin, pmax,
+                               chain, cside, nchain, best)
     return best, nchain
 
 

@@ -592,9 +592,13 @@ def _coarse_cells(model: Node, domain, band: float, t: float) -> CellLevels:
     ambiguous cells (the cost of an estimate stays bounded whatever the model)."""
     imin, imax = domain.index_min, domain.index_max
     stop = 1 << int(np.ceil(np.log2(max(8, domain.dims.max() / 64))))
-    size = root_size_for(domain.dims, 8)
-    lv = enumerate_cells(model, imin, imax, domain.voxel_size, band, 8, t, stop_size=max(stop, size // 2))
+    # at most ~16^3 top cells, whatever the resolution (the voxeliser's own top cells stop at
+    # 4096 voxels: 10^6 voxels a side would be 10^7 of them)
+    root = max(root_size_for(domain.dims, 8), 1 << int(np.ceil(np.log2(max(8, domain.dims.max() / 16)))))
+    size = root
+    lv = enumerate_cells(model, imin, imax, domain.voxel_size, band, 8, t, stop_size=max(stop, size // 2),
+                         root_size=root)
     while lv.stats["levels"][-1]["size"] > stop and len(lv.blocks) < ESTIMATE_CELLS:
         size = lv.stats["levels"][-1]["size"] // 2
-        lv = enumerate_cells(model, imin, imax, domain.voxel_size, band, 8, t, stop_size=size)
+        lv = enumerate_cells(model, imin, imax, domain.voxel_size, band, 8, t, stop_size=size, root_size=root)
     return lv

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline import tape as T
+from pipeline import tape as pt
 from pipeline.config import load_job
 from tests.test_written_grids import frep_config, tree
 
@@ -51,13 +51,13 @@ def job_of(tmp_path, model: str):
     return load_job(cfg)
 
 
-def check_tape(job, seed: int = 0) -> T.Tape:
-    tp = T.compile_model(job.model, job.t)
+def check_tape(job, seed: int = 0) -> pt.Tape:
+    tp = pt.compile_model(job.model, job.t)
     assert tp is not None
     rng = np.random.default_rng(seed)
     p = rng.uniform(-1.2, 1.2, (4000, 3))
     ref = job.model.evaluate(p, job.t)
-    got = T.evaluate_with(tp, p)
+    got = pt.evaluate_with(tp, p)
     ok = np.isfinite(ref)
     np.testing.assert_array_equal(np.isfinite(got), ok)
     np.testing.assert_allclose(got[ok], ref[ok], rtol=1e-9, atol=1e-12)
@@ -65,28 +65,28 @@ def check_tape(job, seed: int = 0) -> T.Tape:
     for size in (0.5, 0.12, 0.03):
         lo = rng.uniform(-1.2, 1.2 - size, (40, 3))
         hi = lo + size
-        flo, fhi = T.bound_with(tp, lo, hi)
+        flo, fhi = pt.bound_with(tp, lo, hi)
         for q in range(len(lo)):
             pts = rng.uniform(lo[q], hi[q], (64, 3))
-            v = T.evaluate_with(tp, pts)
+            v = pt.evaluate_with(tp, pts)
             fin = np.isfinite(v)
             assert np.all(v[fin] >= flo[q]) and np.all(v[fin] <= fhi[q]), (size, q)
             sub = specialised(tp, lo[q], hi[q])
             assert len(sub) <= len(tp)
-            np.testing.assert_array_equal(T.evaluate_with(sub, pts), v)
+            np.testing.assert_array_equal(pt.evaluate_with(sub, pts), v)
     return tp
 
 
-def specialised(tp: T.Tape, lo: np.ndarray, hi: np.ndarray) -> T.Tape:
+def specialised(tp: pt.Tape, lo: np.ndarray, hi: np.ndarray) -> pt.Tape:
     """The tape of one box, through the same kernels the voxeliser uses."""
     n = len(tp)
     choices = np.zeros(n, np.int8)
-    T.bound_boxes(lo[None], hi[None], np.zeros(1, np.int64), np.zeros(1, np.int64), np.array([n]),
+    pt.bound_boxes(lo[None], hi[None], np.zeros(1, np.int64), np.zeros(1, np.int64), np.array([n]),
                   np.array([tp.res]), tp.op, tp.a, tp.b, tp.c, n, np.zeros(1, np.int64), choices)
-    s, ln, r, op, a, b, c = T.specialise(np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
+    s, ln, r, op, a, b, c = pt.specialise(np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
                                          np.array([n]), np.array([tp.res]), tp.op, tp.a, tp.b, tp.c,
                                          np.zeros(1, np.int64), choices)
-    return T.Tape(op, a, b, c, int(r[0]))
+    return pt.Tape(op, a, b, c, int(r[0]))
 
 
 @pytest.mark.parametrize("name", sorted(NODES))
@@ -108,7 +108,7 @@ def test_oracle_nodes_are_not_traced(tmp_path) -> None:
     path = tmp_path / "ico.off"
     trimesh.creation.icosphere(1, 0.6).export(str(path))
     job = job_of(tmp_path, f"union: [{{mesh: {{path: {path}}}}}, {{sphere: {{radius: 0.2}}}}]")
-    assert T.compile_model(job.model, job.t) is None
+    assert pt.compile_model(job.model, job.t) is None
 
 
 def test_union_of_many_parts_specialises_to_the_few_near_a_cell(tmp_path) -> None:
@@ -123,8 +123,8 @@ def test_union_of_many_parts_specialises_to_the_few_near_a_cell(tmp_path) -> Non
 
 
 def test_shared_subtrees_are_one_set_of_clauses(tmp_path) -> None:
-    one = T.compile_model(job_of(tmp_path, "sphere: {radius: 0.5}").model)
-    twice = T.compile_model(job_of(tmp_path, "union: {of: [{sphere: {radius: 0.5}}, {sphere: {radius: 0.5}}], "
+    one = pt.compile_model(job_of(tmp_path, "sphere: {radius: 0.5}").model)
+    twice = pt.compile_model(job_of(tmp_path, "union: {of: [{sphere: {radius: 0.5}}, {sphere: {radius: 0.5}}], "
                                              "rfunc: min_max}").model)
     assert len(twice) <= len(one) + 1
 
@@ -148,5 +148,5 @@ def test_min_max_mesh_lowers_to_planes_and_prunes(tmp_path) -> None:
     tp = check_tape(job)
     c = np.array([0.7, 0.0, 0.0])
     sub = specialised(tp, c - 0.03, c + 0.03)
-    planes = [np.count_nonzero(t.op == T.MUL) for t in (sub, tp)]  # three products per plane
+    planes = [np.count_nonzero(t.op == pt.MUL) for t in (sub, tp)]  # three products per plane
     assert planes[0] < planes[1] / 5, planes

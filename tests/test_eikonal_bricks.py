@@ -55,11 +55,13 @@ def test_bricked_solve_equals_the_unsplit_one(name: str, order: int) -> None:
             assert compare(whole, split, limit) < (1e-4 if order == 1 else 1e-3), (name, limit, brick)
 
 
-@settings(max_examples=6, deadline=None, derandomize=True)
+@settings(max_examples=6, deadline=None)
 @given(st.lists(st.tuples(st.floats(-0.5, 0.5), st.floats(-0.5, 0.5), st.floats(-0.5, 0.5), st.floats(0.12, 0.35)),
                 min_size=1, max_size=4),
        st.sampled_from([8, 16, 32]))
 def test_bricked_solve_on_random_sphere_unions(spheres, brick) -> None:
+    """First order: the bricked rounds reach the unsplit fixed point (monotone scheme, unique
+    fixed point: Jeong & Whitaker's argument). Second order: see the strict xfail below."""
     c = np.array([s[:3] for s in spheres])
     r = np.array([s[3] for s in spheres])
 
@@ -68,10 +70,10 @@ def test_bricked_solve_on_random_sphere_unions(spheres, brick) -> None:
 
     frep, dom = band_grid(fn, 48)
     h = 2.0 / 48
-    whole = solve_distance(frep, 4 * h, dom)
-    split = solve_distance(frep, 4 * h, dom, brick=brick)
+    whole = solve_distance(frep, 4 * h, dom, order=1)
+    split = solve_distance(frep, 4 * h, dom, brick=brick, order=1)
     both = whole.distance.active & split.distance.active
-    assert np.abs(whole.distance.values - split.distance.values)[both].max() < 1e-3 * h
+    assert np.abs(whole.distance.values - split.distance.values)[both].max() < 1e-4 * h
 
 
 def test_bricks_follow_the_brick_lattice() -> None:
@@ -141,11 +143,14 @@ def test_hfrep_on_bricks_on_dask_matches_the_unsplit_run(tmp_path, cluster) -> N
         np.testing.assert_allclose(as_[near_cut], aw[near_cut], atol=0.05 * h, err_msg=grid)
 
 
-@pytest.mark.xfail(strict=True, reason="bricked FIM differs from the unsplit solve by 0.0057 voxel (bound 0.001) "
-                   "for a sphere touching 8-voxel brick faces; found by hypothesis in session 3, present at a63888c")
-def test_bricked_solve_sphere_on_brick_faces() -> None:
-    c = np.array([[0.0, 0.0, 0.4375]])
-    r = np.array([0.25])
+@pytest.mark.xfail(strict=True, reason="not met: the second-order pass on bricks differs from the unsplit one by "
+                   "0.0057 / 0.0025 voxel (claimed bound 0.001): the second-order scheme is not monotone, so its fixed "
+                   "point depends on the update order; present at a63888c, found by hypothesis in session 3")
+@pytest.mark.parametrize("centre, radius, brick", [((0.0, 0.0, 0.4375), 0.25, 8),
+                                                   ((0.0, 0.06299828609015157, -0.14924104884936357), 0.13713543362049535, 16)])
+def test_bricked_second_order_solve_near_brick_faces(centre, radius, brick) -> None:
+    c = np.array([centre])
+    r = np.array([radius])
 
     def fn(p):
         return (r - np.linalg.norm(p[..., None, :] - c, axis=-1)).max(axis=-1)
@@ -153,6 +158,6 @@ def test_bricked_solve_sphere_on_brick_faces() -> None:
     frep, dom = band_grid(fn, 48)
     h = 2.0 / 48
     whole = solve_distance(frep, 4 * h, dom)
-    split = solve_distance(frep, 4 * h, dom, brick=8)
+    split = solve_distance(frep, 4 * h, dom, brick=brick)
     both = whole.distance.active & split.distance.active
     assert np.abs(whole.distance.values[both] - split.distance.values[both]).max() < 1e-3 * h

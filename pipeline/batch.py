@@ -70,12 +70,10 @@ def _worker_init(workers: int) -> None:
     folder is removed and its lock released) instead of killing the process mid-write."""
     import signal
 
+    from pipeline.errors import on_interrupt
+
     share_cores(workers)
-    signal.signal(signal.SIGTERM, _interrupt)
-
-
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt
+    signal.signal(signal.SIGTERM, on_interrupt)
 
 
 class Executor:

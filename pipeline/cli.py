@@ -10,7 +10,7 @@ from pathlib import Path
 
 import yaml
 
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, interrupted, on_interrupt
 
 EXIT_OK, EXIT_FAIL, EXIT_INPUT = 0, 1, 2
 
@@ -28,6 +28,9 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return EXIT_FAIL
     except Exception as e:  # noqa: BLE001 - one line for the user; --debug shows the traceback
+        if interrupted():  # an interrupt that surfaced as an error of compiled code
+            print("interrupted", file=sys.stderr)
+            return EXIT_FAIL
         if getattr(args, "debug", False):
             traceback.print_exc()
         print(f"error: {_one_line(e)}", file=sys.stderr)
@@ -35,6 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def _one_line(e: BaseException, limit: int = 300) -> str:
@@ -45,16 +49,15 @@ def _one_line(e: BaseException, limit: int = 300) -> str:
 
 
 def _terminate_on_sigterm():
-    """SIGTERM ends a run like Ctrl-C: staging folders are removed, locks released, exit 1."""
+    """SIGTERM ends a run like Ctrl-C: staging folders are removed, locks released, exit 1
+    (both go through pipeline.errors.on_interrupt, so an interrupt inside compiled code is
+    still reported as one)."""
     import threading
 
     if threading.current_thread() is not threading.main_thread():
         return None
-    return signal.signal(signal.SIGTERM, _raise_interrupt)
-
-
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt
+    signal.signal(signal.SIGINT, on_interrupt)
+    return signal.signal(signal.SIGTERM, on_interrupt)
 
 
 def _parser() -> argparse.ArgumentParser:

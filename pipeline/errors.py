@@ -2,6 +2,22 @@
 
 from __future__ import annotations
 
+import threading
+
+_INTERRUPT = threading.Event()
+
+
+def on_interrupt(signum, frame) -> None:
+    """Signal handler for SIGINT/SIGTERM: remember the request, then unwind as Ctrl-C does.
+    A compiled (Numba) call that the KeyboardInterrupt hits reports it as a SystemError; the
+    flag lets the runner tell that from a real failure."""
+    _INTERRUPT.set()
+    raise KeyboardInterrupt
+
+
+def interrupted() -> bool:
+    return _INTERRUPT.is_set()
+
 
 def format_path(path: tuple) -> str:
     """('model', 'union', 1, 'sphere', 'radius') -> 'model.union[1].sphere.radius'."""

@@ -15,7 +15,7 @@ from pathlib import Path
 from pipeline.atomic import write_json
 from pipeline.config import Job, locate_nonfinite
 from pipeline.context import JobContext
-from pipeline.errors import ConfigError, InputError
+from pipeline.errors import ConfigError, InputError, interrupted
 from pipeline.grid import grid_stats
 from pipeline.outputs import (
     JobBusy,
@@ -46,6 +46,8 @@ def run_job(job: Job, out_root: str | Path, progress=None, executor=None) -> dic
             return _run_staged(job, staging, folder, progress, executor)
         except BaseException as e:
             shutil.rmtree(staging, ignore_errors=True)
+            if interrupted() and not isinstance(e, KeyboardInterrupt):
+                raise KeyboardInterrupt from e  # hit inside compiled code: reported as a SystemError
             if isinstance(e, Exception):
                 _record_failure(job, folder, e, staging)
             if isinstance(e, OSError):

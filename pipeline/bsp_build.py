@@ -92,6 +92,27 @@ def _dist(tri: np.ndarray, t: int, k: int, n: np.ndarray, c: float) -> float:
 
 
 @njit(cache=True)
+def _poly_ranges(tri, own, items, n_items, polys, npoly, n, c, pmin, pmax):
+    """Signed-distance range to the plane (n, c) of every polygon of the node, over its
+    triangles items[:n_items] (how section 3.3.1 classifies a whole polygon)."""
+    for i in range(npoly):
+        pmin[polys[i]] = np.inf
+        pmax[polys[i]] = -np.inf
+    _extend_ranges(tri, own, items, n_items, n, c, pmin, pmax)
+
+
+@njit(cache=True)
+def _extend_ranges(tri, own, items, n_items, n, c, pmin, pmax):
+    for i in range(n_items):
+        t = items[i]
+        o = own[t]
+        for v in range(3):
+            s = _dist(tri, t, v, n, c)
+            pmin[o] = min(pmin[o], s)
+            pmax[o] = max(pmax[o], s)
+
+
+@njit(cache=True)
 def _score(tri, own, items, m, polys, npoly, exact, pn, q, eps, pmin, pmax):
     """Section 3.3.3 criteria of the plane of polygon q over triangles items[:m]:
     (Ksplit, Kdist, Kangle, Ktree). Exact mode classifies whole polygons (their triangles in the
@@ -332,16 +353,7 @@ def _partition(tri, own, items, n_items, polys, npoly, pn, q, eps, n_tri, pmin, 
     ones; polygons on the plane with q's orientation stay in the node."""
     n = pn[q]
     c = pn[q, 3]
-    for i in range(npoly):
-        pmin[polys[i]] = np.inf
-        pmax[polys[i]] = -np.inf
-    for i in range(n_items):
-        t = items[i]
-        o = own[t]
-        for k in range(3):
-            s = _dist(tri, t, k, n, c)
-            pmin[o] = min(pmin[o], s)
-            pmax[o] = max(pmax[o], s)
+    _poly_ranges(tri, own, items, n_items, polys, npoly, n, c, pmin, pmax)
     nsplit = 0
     for i in range(npoly):
         p = polys[i]
@@ -405,16 +417,7 @@ def _chain_rest(tri, own, items, n_items, polys, npoly, pn, chain, k, eps, pmin,
     for j in range(k):
         n = pn[chain[j]]
         c = pn[chain[j], 3]
-        for i in range(npoly):
-            pmin[polys[i]] = np.inf
-            pmax[polys[i]] = -np.inf
-        for i in range(n_items):
-            t = items[i]
-            o = own[t]
-            for v in range(3):
-                sv = _dist(tri, t, v, n, c)
-                pmin[o] = min(pmin[o], sv)
-                pmax[o] = max(pmax[o], sv)
+        _poly_ranges(tri, own, items, n_items, polys, npoly, n, c, pmin, pmax)
         for i in range(npoly):
             p = polys[i]
             if pmin[p] >= -eps and pmax[p] <= eps and pn[p, 0] * n[0] + pn[p, 1] * n[1] + pn[p, 2] * n[2] > 0:
@@ -679,13 +682,7 @@ def _big_partition(tri, own, n_tri, bi, alive, lo, hi, size, ex, exalive, nex, p
             gt[ng] = ex[k]
             gl[ng] = -(k + 1)
             ng += 1
-    for i in range(ng):
-        t = gt[i]
-        o = own[t]
-        for v in range(3):
-            sv = _dist(tri, t, v, n, c)
-            pmin[o] = min(pmin[o], sv)
-            pmax[o] = max(pmax[o], sv)
+    _extend_ranges(tri, own, gt, ng, n, c, pmin, pmax)
     nsplit = 0
     for i in range(nfo):
         if not (pmin[fo[i]] >= -eps or pmax[fo[i]] <= eps):

@@ -335,19 +335,10 @@ def clear_failure(folder: Path) -> None:
 
 def os_error_line(e: OSError, stage: Path | None = None, folder: Path | None = None) -> str:
     """One line for a write error, naming the path as the user will know it (the job folder,
-    not the staging folder)."""
+    not the staging folder; pipeline.atomic already names the final file, not its temporary)."""
     path = str(e.filename) if e.filename else ""
     if stage is not None and folder is not None and path.startswith(str(stage)):
         path = str(folder) + path[len(str(stage)):]
-        path = _untemp(path)
     what = e.strerror or str(e)
     return f"cannot write {path}: {what}" if path else f"write error: {what}"
 
-
-def _untemp(path: str) -> str:
-    """``.name.XXXX.tmp.vdb`` (atomic_path's temporary) -> ``name.vdb``."""
-    p = Path(path)
-    parts = p.name.split(".")
-    if p.name.startswith(".") and len(parts) >= 4 and parts[-2] == "tmp":
-        return str(p.with_name(".".join(parts[1:-3]) + "." + parts[-1]))
-    return path

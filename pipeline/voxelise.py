@@ -115,25 +115,13 @@ def enumerate_cells_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: floa
     while len(cells):
         lo, hi = _clip_boxes(cells, size, imin, imax)
         flo, fhi, _ = _bound_level(pool, tape_of, lo * h - pad, hi * h + pad)  # culling: the dilated box
-        inside, outside = flo > 0, fhi < 0
-        ambiguous = ~(inside | outside)
-        st["cells_visited"] += len(cells)
-        st["cells_culled_inside"] += int(inside.sum())
-        st["cells_culled_outside"] += int(outside.sum())
-        keep = np.flatnonzero(ambiguous)
+        keep = _cull_level(out, st, cells, size, flo, fhi, progress)
         # the shortened tape must hold on the cell itself only (its voxels and its children), so it
         # is decided on the undilated box: much shorter tapes than the band-dilated one gives
         k_of = tape_of[keep]
         _, _, (choff, choices) = _bound_level(pool, k_of, (lo[keep] - 0.5) * h, (hi[keep] + 0.5) * h)
         pool = TapePool(*specialise(np.arange(len(keep), dtype=np.int64), k_of, *pool.arrays(), choff, choices))
-        st["levels"].append({"size": size, "cells": len(cells), "ambiguous": int(len(keep)),
-                             "mean_tape": round(float(pool.length.mean()), 2) if len(keep) else 0.0})
-        if progress:
-            progress(f"level {size}: {len(cells)} cells")
-        if inside.any():
-            out.inside.append((cells[inside], size))
-        if outside.any():
-            out.outside.append((cells[outside], size))
+        st["levels"][-1]["mean_tape"] = round(float(pool.length.mean()), 2) if len(keep) else 0.0
         amb = cells[keep]
         if size <= block:
             out.blocks = amb
@@ -214,19 +202,7 @@ def enumerate_cells(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, b
     while len(cells):
         lo, hi = _clip_boxes(cells, size, imin, imax)
         flo, fhi = bound_cells(model, lo, hi, h, pad, t)
-        inside, outside = flo > 0, fhi < 0
-        ambiguous = ~(inside | outside)
-        st["cells_visited"] += len(cells)
-        st["cells_culled_inside"] += int(inside.sum())
-        st["cells_culled_outside"] += int(outside.sum())
-        st["levels"].append({"size": size, "cells": len(cells), "ambiguous": int(ambiguous.sum())})
-        if progress:
-            progress(f"level {size}: {len(cells)} cells")
-        if inside.any():
-            out.inside.append((cells[inside], size))
-        if outside.any():
-            out.outside.append((cells[outside], size))
-        amb = cells[ambiguous]
+        amb = cells[_cull_level(out, st, cells, size, flo, fhi, progress)]
         if size <= stop:
             out.blocks = amb
             break
@@ -234,6 +210,25 @@ def enumerate_cells(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, b
         cells = _children(amb, size, lo_c, hi_c)
     out.stats = st
     return out
+
+
+def _cull_level(out: CellLevels, st: dict, cells: np.ndarray, size: int, flo: np.ndarray, fhi: np.ndarray,
+                progress: Callable[[str], None] | None) -> np.ndarray:
+    """One level of the descent (both evaluators): cells whose bound is > 0 are recorded inside,
+    < 0 outside, the statistics counted; returns the indices of the ambiguous cells."""
+    inside, outside = flo > 0, fhi < 0
+    keep = np.flatnonzero(~(inside | outside))
+    st["cells_visited"] += len(cells)
+    st["cells_culled_inside"] += int(inside.sum())
+    st["cells_culled_outside"] += int(outside.sum())
+    st["levels"].append({"size": size, "cells": len(cells), "ambiguous": int(len(keep))})
+    if progress:
+        progress(f"level {size}: {len(cells)} cells")
+    if inside.any():
+        out.inside.append((cells[inside], size))
+    if outside.any():
+        out.outside.append((cells[outside], size))
+    return keep
 
 
 def _children(cells: np.ndarray, size: int, imin: np.ndarray, imax: np.ndarray, parents: bool = False):

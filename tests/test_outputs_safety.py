@@ -287,15 +287,21 @@ def _start_and_wait_for_staging(cfg: Path, out: Path) -> subprocess.Popen:
     return proc
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_sigterm_removes_the_staging_folder_and_keeps_the_outputs(tmp_path, sig) -> None:
+def _rerun_in_progress(tmp_path: Path):
+    """A good first run, then a slow rerun of the same job caught while it writes its staging
+    folder: (config, --out, snapshot of the good outputs, the running process)."""
     cfg = tmp_path / "job.yaml"
     cfg.write_text(ball("ball", res=20))
     out = tmp_path / "out"
     assert main(["run", str(cfg), "--out", str(out)]) == 0
     good = snapshot(out / "ball")
     cfg.write_text(ball("ball", res=160, more="  - hfrep: {}\n"))
-    proc = _start_and_wait_for_staging(cfg, out)
+    return cfg, out, good, _start_and_wait_for_staging(cfg, out)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_sigterm_removes_the_staging_folder_and_keeps_the_outputs(tmp_path, sig) -> None:
+    cfg, out, good, proc = _rerun_in_progress(tmp_path)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 1 and "interrupted" in err and "Traceback" not in err
@@ -304,13 +310,7 @@ def test_sigterm_removes_the_staging_folder_and_keeps_the_outputs(tmp_path, sig)
 
 
 def test_kill_9_debris_is_removed_by_the_next_run(tmp_path) -> None:
-    cfg = tmp_path / "job.yaml"
-    cfg.write_text(ball("ball", res=20))
-    out = tmp_path / "out"
-    assert main(["run", str(cfg), "--out", str(out)]) == 0
-    good = snapshot(out / "ball")
-    cfg.write_text(ball("ball", res=160, more="  - hfrep: {}\n"))
-    proc = _start_and_wait_for_staging(cfg, out)
+    cfg, out, good, proc = _rerun_in_progress(tmp_path)
     proc.kill()
     proc.wait()
     assert snapshot(out / "ball") == good  # the job folder is never half-written

@@ -622,13 +622,28 @@ def _check_top_keys(root: dict, file: str) -> None:
         raise ConfigError.one(file, line_of(root, (key,)), (clip(str(key), 60),), msg)
 
 
-def load_jobs(path: str | Path, select: str | None = None) -> list[Job]:
+def load_jobs(path: str | Path, select: str | None = None, overrides: list[str] | tuple = ()) -> list[Job]:
     """Load and validate a config file into its jobs (one, a ``jobs:`` list, times ``frames``).
 
-    ``select`` builds only the job of that name (how a worker finds its job again)."""
+    ``select`` builds only the job of that name (how a worker finds its job again);
+    ``overrides``: ``KEY.PATH=VALUE`` strings (``frepvdb run --set``) applied before validation,
+    problems they cause named by the option (:func:`apply_overrides`)."""
     path = Path(path)
-    file = str(path)
     root = load_yaml(path)
+    sha = hashlib.sha256(path.read_bytes()).hexdigest()
+    if not overrides:
+        return jobs_from_root(root, str(path), path.resolve().parent, sha, path.stem, select)
+    applied = apply_overrides(root, overrides, str(path))
+    sha = hashlib.sha256((sha + json.dumps(list(overrides))).encode()).hexdigest()
+    try:
+        return jobs_from_root(root, str(path), path.resolve().parent, sha, path.stem, select)
+    except ConfigError as e:
+        raise ConfigError([_blame_override(p, applied) for p in e.problems]) from None
+
+
+def jobs_from_root(root: Any, file: str, base_dir: Path, sha: str, stem: str, select: str | None = None) -> list[Job]:
+    """The jobs of a parsed config (a YAML file's or a Python dict's): ``file`` names it in
+    messages, ``base_dir`` anchors relative input paths, ``stem`` names a job without ``name:``."""
     if not isinstance(root, dict):
         raise ConfigError.one(file, getattr(root, "line", 1), (), "a config is a mapping (name, domain, model, stages)")
     _check_top_keys(root, file)
@@ -639,12 +654,11 @@ def load_jobs(path: str | Path, select: str | None = None) -> list[Job]:
     bad = boolean_problems(root, top, file, root, ())
     if bad:
         raise bad
-    ctx = _Ctx(file, root, path.resolve().parent)
-    sha = hashlib.sha256(path.read_bytes()).hexdigest()
-    if top.jobs is None and not top.name and job_name_problem(path.stem):
-        raise ConfigError.one(file, None, (), f"the job is named after the file ({path.name!r}), which is not a "
-                              f"valid job name: {job_name_problem(path.stem)}; add a `name:` key")
-    entries = [(None, top.name or path.stem, None, top.model, None, None)] if top.jobs is None else [
+    ctx = _Ctx(file, root, base_dir)
+    if top.jobs is None and not top.name and job_name_problem(stem):
+        raise ConfigError.one(file, None, (), f"the job is named after the file ({Path(file).name!r}), which is not "
+                              f"a valid job name: {job_name_problem(stem)}; add a `name:` key")
+    entries = [(None, top.name or stem, None, top.model, None, None)] if top.jobs is None else [
         (i, e.name, e.domain, e.model, e.stages, e.t) for i, e in enumerate(top.jobs)]
     jobs = []
     for i, name, dom, model_raw, stages_raw, t in entries:
@@ -662,6 +676,142 @@ def load_job(path: str | Path) -> Job:
     if len(jobs) != 1:
         raise ConfigError.one(str(path), None, (), f"expected one job, the config makes {len(jobs)}")
     return jobs[0]
+
+
+# --- factories for the Python API and command-line overrides ----------------------------------
+
+
+def build_model(raw: Any, domain: Domain | None = None, t: float = 0.0, file: str = "<python>",
+                base_dir: Path | None = None) -> Node:
+    """The node tree of a model given as YAML-shaped data (``{"sphere": {"radius": 1}}``), built by
+    the loader's own :func:`build_node`: the Python API (package ``frepvdb``) and configs make the
+    same nodes. ``domain`` sets the magnitude control of r0/sardf set operations as a job's does."""
+    ctx = _Ctx(file, {"model": raw}, Path.cwd() if base_dir is None else base_dir, domain, float(t))
+    return build_node(raw, ("model",), ctx)
+
+
+def make_domain(bounds: Any, voxel_size: float | None = None, resolution: int | None = None,
+                file: str = "<python>") -> Domain:
+    """A validated :class:`Domain` (the ``domain:`` section's rules and messages)."""
+    raw = {"bounds": bounds, "voxel_size": voxel_size, "resolution": resolution}
+    raw = {k: v for k, v in raw.items() if v is not None}
+    try:
+        d = DomainConfig.model_validate(raw)
+    except ValidationError as e:
+        raise ConfigError(validation_problems(e, file, raw, ("domain",), DomainConfig)) from None
+    return _domain(d, _Ctx(file, {"domain": raw}, Path.cwd()))
+
+
+#: keys of ``domain`` that exclude each other: overriding one drops the other
+_EXCLUSIVE = {"resolution": "voxel_size", "voxel_size": "resolution"}
+
+
+def parse_override(text: str) -> tuple[tuple, Any]:
+    """``stages[0].voxelise.band=4`` -> (('stages', 0, 'voxelise', 'band'), 4); the value is YAML."""
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise ValueError("expected KEY.PATH=VALUE")
+    parts: list = []
+    for piece in key.strip().replace("[", ".[").split("."):
+        if piece.startswith("["):
+            if not piece.endswith("]") or not piece[1:-1].isdigit():
+                raise ValueError(f"bad index {piece!r} (an index is [0], [1], ...)")
+            parts.append(int(piece[1:-1]))
+        elif piece:
+            parts.append(piece)
+        else:
+            raise ValueError("empty key in the path")
+    try:
+        val = yaml.safe_load(value) if value.strip() else None
+    except yaml.YAMLError as e:
+        raise ValueError(f"value is not valid YAML: {clip(getattr(e, 'problem', e), 80)}") from None
+    return tuple(parts), val
+
+
+def apply_overrides(root: Any, overrides: list[str] | tuple, file: str) -> list[tuple[tuple, str]]:
+    """Set each ``KEY.PATH=VALUE`` in the parsed config (missing mappings on the way are made);
+    returns (path, option text) per override for :func:`_blame_override`."""
+    applied = []
+    for text in overrides:
+        where = f"--set {clip(text, 80)}"
+        try:
+            path, value = parse_override(text)
+            _set_at(root, path, value)
+        except ValueError as e:
+            raise ConfigError.one(where, None, (), str(e)) from None
+        applied.append((path, where))
+    return applied
+
+
+def _set_at(root: Any, path: tuple, value: Any) -> None:
+    node = root
+    for i, part in enumerate(path):
+        last = i == len(path) - 1
+        shown = format_path(path[:i + 1])
+        if isinstance(part, int):
+            if not isinstance(node, list):
+                raise ValueError(f"{format_path(path[:i]) or 'the config'} is not a list")
+            if part >= len(node):
+                raise ValueError(f"{shown}: index out of range (the list has {len(node)} items)")
+        elif not isinstance(node, dict):
+            raise ValueError(f"{format_path(path[:i]) or 'the config'} is {type_word(node)}, not a mapping")
+        if last:
+            if isinstance(node, dict) and path[:-1] == ("domain",) and _EXCLUSIVE.get(part) in node:
+                del node[_EXCLUSIVE[part]]  # resolution replaces voxel_size and vice versa
+            node[part] = value
+            return
+        child = node[part] if (isinstance(part, int) or part in node) else None
+        if child is None:  # ``voxelise:`` with no body, or a key not there yet
+            child = {}
+            node[part] = child
+        node = child
+
+
+def write_config(root: Any, base_dir: Path, out_root: Path, stem: str) -> Path:
+    """The effective config (a dict from Python, or a file with ``--set`` overrides applied) as a
+    YAML file under ``<out>/.frepvdb-configs/`` that runs like the original: input paths made
+    absolute (they were relative to ``base_dir``) and the job keeps its name. Workers and bricks
+    find their job again by config file (pipeline.batch.JobRef), so the run goes through it."""
+    data = _to_plain(root)
+    if data.get("jobs") is None and not data.get("name"):
+        data["name"] = stem
+    for model in [data.get("model")] + [j.get("model") for j in data.get("jobs") or [] if isinstance(j, dict)]:
+        _absolute_paths(model, base_dir)
+    text = yaml.safe_dump(data, sort_keys=False)
+    folder = Path(out_root) / ".frepvdb-configs"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{stem}-{hashlib.sha256(text.encode()).hexdigest()[:12]}.yaml"
+    if not path.exists():
+        from pipeline.atomic import atomic_path
+
+        with atomic_path(path) as tmp:
+            tmp.write_text(text)
+    return path
+
+
+def _absolute_paths(node: Any, base_dir: Path) -> None:
+    """Every ``path:`` of a model's nodes relative to ``base_dir`` made absolute, in place."""
+    if isinstance(node, list):
+        for item in node:
+            _absolute_paths(item, base_dir)
+    elif isinstance(node, dict):
+        for key, value in node.items():
+            if key == "path" and isinstance(value, str):
+                p = Path(value).expanduser()
+                node[key] = str(p if p.is_absolute() else (base_dir / p).resolve())
+            else:
+                _absolute_paths(value, base_dir)
+
+
+def _blame_override(problem: tuple, applied: list[tuple[tuple, str]]) -> tuple:
+    """A problem at (or above, or below) an overridden path is reported as the option's."""
+    file, line, path, msg = problem
+    for opt_path, where in reversed(applied):
+        n = min(len(path), len(opt_path))
+        if tuple(path[:n]) == tuple(opt_path[:n]) and n > 0:
+            deeper = len(path) > len(opt_path)
+            return (where, None, (), f"{format_path(path)}: {msg}" if deeper else msg)
+    return problem
 
 
 def _entry_jobs(ctx: _Ctx, top: TopConfig, sha: str, base: tuple, index: int, name: str,

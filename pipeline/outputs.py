@@ -216,7 +216,35 @@ def _file_problem(path: Path, grids: dict) -> str | None:
         return _ply_problem(path, size)
     if suffix == ".obj":
         return None if _tail(path).endswith(b"\n") else "is not a complete OBJ file"
+    if suffix == ".stl":
+        return _stl_problem(path, size)
+    if suffix == ".3mf":
+        return _3mf_problem(path)
     return None
+
+
+def _stl_problem(path: Path, size: int) -> str | None:
+    """Binary STL: exactly 84 + 50 n bytes for the n triangles its header counts."""
+    with open(path, "rb") as f:
+        head = f.read(84)
+    n = int.from_bytes(head[80:84], "little") if len(head) == 84 else -1
+    if n >= 0 and size == 84 + 50 * n:
+        return None
+    return f"has {size} bytes, a binary STL of {n} triangles needs {84 + 50 * n}"
+
+
+def _3mf_problem(path: Path) -> str | None:
+    """3MF: a complete zip (CRCs checked) holding the model part 3D/3dmodel.model."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            if "3D/3dmodel.model" not in z.namelist():
+                return "is not a 3MF file (no 3D/3dmodel.model part)"
+            bad = z.testzip()
+    except (zipfile.BadZipFile, OSError) as e:
+        return f"is not a complete 3MF (zip) file ({str(e)[:80]})"
+    return None if bad is None else f"is not a complete 3MF file (part {bad} is damaged)"
 
 
 def _tail(path: Path, n: int = 64) -> bytes:

@@ -26,6 +26,9 @@ class Params(StageParams):
     adaptivity: float = Field(default=0.0, ge=0, le=1, description="volumeToMesh adaptivity for the surface")
     previews: bool = False
     report: bool = Field(default=True, description="report.html (with previews when they are made)")
+    mesh: list[Literal["stl", "3mf", "ply", "obj"]] = Field(
+        default_factory=list, description="printable meshes of the zero set (pipeline.meshout): <name>_mesh.<kind>")
+    mesh_per_component: bool = Field(default=False, description="also one mesh per component (components stage)")
 
 
 def run(ctx, p: Params) -> dict:
@@ -49,6 +52,10 @@ def run(ctx, p: Params) -> dict:
             ctx.add_output(ctx.out_dir / Path(e["path"]).name, e["kind"], **{k: v for k, v in e.items()
                                                                          if k not in ("path", "kind")})
         stats["vtk"] = [e["path"] for e in entries]
+    if p.mesh:
+        from pipeline.meshout import export_meshes
+
+        stats["mesh"] = export_meshes(ctx, ctx.grids, p.mesh, p.mesh_per_component)
     if p.previews:
         from pipeline.previews import write_previews
 

@@ -144,10 +144,7 @@ def label_brick(task: BrickTask) -> BrickCells:
     model = _model_of(task.source)
     tree, escaped = cc.enumerate_in_brick(model, task.origin, task.size, task.depth, task.t, task.region,
                                           task.continuation, (task.lo, task.hi))
-    n = len(tree)
-    a, b = cc.adjacency(tree)
-    indptr, indices = cc._csr(n, a, b)
-    raw, count = cc._mark(n, indptr, indices) if n else (np.zeros(0, np.int32), 0)
+    raw, count = cc.mark_union(tree)
     low = tree.coords << (task.depth - tree.level)[:, None]
     own = np.all((low >= task.lo) & (low < task.hi), axis=1)
     st = {k: tree.stats.get(k, 0) for k in _STAT_SUMS}

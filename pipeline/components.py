@@ -74,6 +74,7 @@ class Octree:
     pos_frac: np.ndarray  # (N,) fraction of positive corners (1 for inside cells)
     stats: dict = field(default_factory=dict)
     _lookup: list | None = field(default=None, repr=False)
+    _flat: tuple | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.level)
@@ -106,28 +107,123 @@ class Octree:
             self._lookup = tabs
         return self._lookup
 
+    def flat_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All levels' sorted keys and rows in one array each, level l at ``off[l]:off[l+1]``
+        (the form the compiled lookups take)."""
+        if self._flat is None:
+            tabs = self.tables()
+            off = np.zeros(self.depth + 2, np.int64)
+            off[1:] = np.cumsum([len(k) for k, _ in tabs])
+            keys = np.concatenate([k for k, _ in tabs]) if tabs else np.zeros(0, np.int64)
+            rows = np.concatenate([r for _, r in tabs]) if tabs else np.zeros(0, np.int64)
+            self._flat = (keys.astype(np.int64), rows.astype(np.int64), off)
+        return self._flat
+
     def find(self, level: int, coords: np.ndarray) -> np.ndarray:
         """Row of the kept cell (level, coords) or of its kept ancestor; -1 when none."""
-        out = np.full(len(coords), -1, np.int64)
-        ok = np.all((coords >= 0) & (coords < (1 << level)), axis=1)
-        tabs = self.tables()
-        for lv in range(level, -1, -1):
-            keys, rows = tabs[lv]
-            todo = ok & (out < 0)
-            if not todo.any() or len(keys) == 0:
-                continue
-            q = pack(coords[todo] >> (level - lv))
-            pos = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
-            hit = keys[pos] == q
-            idx = np.nonzero(todo)[0]
-            out[idx[hit]] = rows[pos[hit]]
-        return out
+        c = np.ascontiguousarray(np.asarray(coords, np.int64).reshape(-1, 3))
+        if len(c) == 0 or len(self) == 0:
+            return np.full(len(c), -1, np.int64)
+        return _find_rows(c, int(level), *self.flat_tables())
 
     def locate(self, points: np.ndarray) -> np.ndarray:
         """Row of the kept cell containing each world point, -1 outside every kept cell."""
         p = (np.asarray(points, float).reshape(-1, 3) - self.origin) / self.finest
         ijk = np.floor(p).astype(np.int64)
         return self.find(self.depth, ijk)
+
+
+@numba.njit(cache=True, inline="always")
+def _bsearch(keys, lo, hi, q):
+    """Index of ``q`` in the sorted ``keys[lo:hi]``, -1 when absent."""
+    end = hi
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if keys[mid] < q:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo if lo < end and keys[lo] == q else -1
+
+
+@numba.njit(cache=True, inline="always")
+def _find_one(x, y, z, level, keys, rows, off):
+    """Row of the kept cell (level, x, y, z) or of its nearest kept ancestor, -1 when none."""
+    lim = 1 << level
+    if x < 0 or y < 0 or z < 0 or x >= lim or y >= lim or z >= lim:
+        return -1
+    for lv in range(level, -1, -1):
+        s, e = off[lv], off[lv + 1]
+        if s == e:
+            continue
+        sh = level - lv
+        q = ((x >> sh) << 42) | ((y >> sh) << 21) | (z >> sh)
+        pos = _bsearch(keys, s, e, q)
+        if pos >= 0:
+            return rows[pos]
+    return -1
+
+
+@numba.njit(cache=True, parallel=True)
+def _find_rows(coords, level, keys, rows, off):
+    """Octree.find compiled: one search per level from ``level`` up, both cores."""
+    out = np.empty(coords.shape[0], np.int64)
+    for n in numba.prange(coords.shape[0]):
+        out[n] = _find_one(coords[n, 0], coords[n, 1], coords[n, 2], level, keys, rows, off)
+    return out
+
+
+@numba.njit(cache=True)
+def _root(parent, a):
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]  # path halving
+        a = parent[a]
+    return a
+
+
+@numba.njit(cache=True)
+def _face_union(level, coords, keys, rows, off):
+    """Section 4.2 marking as union-find: every kept cell is joined with the same-level or
+    coarser kept cell across each of its six faces (Figure 1: green and yellow; the orange,
+    finer neighbours are the same pairs seen from the finer cell). Returns the cluster id of
+    every cell (0..count-1, in order of first appearance) and the count."""
+    n = level.shape[0]
+    parent = np.arange(n)
+    for r in range(n):
+        lv = level[r]
+        for f in range(6):
+            x, y, z = coords[r, 0], coords[r, 1], coords[r, 2]
+            if f == 0:
+                x += 1
+            elif f == 1:
+                x -= 1
+            elif f == 2:
+                y += 1
+            elif f == 3:
+                y -= 1
+            elif f == 4:
+                z += 1
+            else:
+                z -= 1
+            nb = _find_one(x, y, z, lv, keys, rows, off)
+            if nb < 0:
+                continue
+            a, b = _root(parent, r), _root(parent, nb)
+            if a != b:
+                if a < b:
+                    parent[b] = a
+                else:
+                    parent[a] = b
+    ids = np.full(n, -1, np.int64)
+    out = np.empty(n, np.int64)
+    count = 0
+    for r in range(n):
+        a = _root(parent, r)
+        if ids[a] < 0:
+            ids[a] = count
+            count += 1
+        out[r] = ids[a]
+    return out, count
 
 
 # --- Algorithm 1: adaptive spatial continuation --------------------------------------------------
@@ -408,59 +504,6 @@ def _continuation(cells, vals, cache, depth, origin, size, region, st, brick=Non
 # --- section 4.2: marking with propagation ---------------------------------------------------------
 
 
-def adjacency(tree: Octree) -> tuple[np.ndarray, np.ndarray]:
-    """Face adjacency of kept cells (Figure 1): same level (green), coarser (yellow); the finer
-    (orange) neighbours are the same pairs seen from the finer cell. Returns (a, b) row pairs."""
-    src, dst = [], []
-    for lv in range(tree.depth + 1):
-        rows = np.nonzero(tree.level == lv)[0]
-        if len(rows) == 0:
-            continue
-        for d in _FACES:
-            nb = tree.find(lv, tree.coords[rows] + d)
-            ok = nb >= 0
-            src.append(rows[ok]), dst.append(nb[ok])
-    if not src:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return np.concatenate(src), np.concatenate(dst)
-
-
-@numba.njit(cache=True)
-def _mark(n: int, indptr: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, int]:
-    """Section 4.2: while unmarked cells remain, start a new component at the first one and
-    mark everything reachable through the adjacency (iterative propagation with a stack)."""
-    label = np.zeros(n, np.int32)
-    stack = np.empty(n, np.int64)
-    count = 0
-    for seed in range(n):
-        if label[seed] != 0:
-            continue
-        count += 1
-        label[seed] = count
-        top = 0
-        stack[0] = seed
-        top = 1
-        while top > 0:
-            top -= 1
-            c = stack[top]
-            for e in range(indptr[c], indptr[c + 1]):
-                nb = indices[e]
-                if label[nb] == 0:
-                    label[nb] = count
-                    stack[top] = nb
-                    top += 1
-    return label, count
-
-
-def _csr(n: int, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    src = np.concatenate([a, b])
-    dst = np.concatenate([b, a])
-    order = np.argsort(src, kind="stable")
-    indptr = np.zeros(n + 1, np.int64)
-    np.cumsum(np.bincount(src, minlength=n), out=indptr[1:])
-    return indptr, dst[order].astype(np.int64)
-
-
 @dataclass
 class Components:
     """Result of section 4.2 on an octree: ``labels`` per cell (1..count, scan order)."""
@@ -480,11 +523,18 @@ def label_cells(tree: Octree) -> Components:
     in which ``scipy.ndimage.label`` numbers a dense grid.
     """
     t0 = time.perf_counter()
-    n = len(tree)
-    a, b = adjacency(tree)
-    indptr, indices = _csr(n, a, b)
-    raw, count = _mark(n, indptr, indices) if n else (np.zeros(0, np.int32), 0)
-    return summarise(tree, _scan_order(tree, raw.astype(np.int64), count), int(count), t0)
+    raw, count = mark_union(tree)
+    return summarise(tree, _scan_order(tree, raw, count), int(count), t0)
+
+
+def mark_union(tree: Octree) -> tuple[np.ndarray, int]:
+    """Raw cluster labels 1..count of the kept cells by face adjacency (section 4.2: the
+    clusters the marking with propagation finds, here by a compiled union-find)."""
+    if len(tree) == 0:
+        return np.zeros(0, np.int64), 0
+    ids, count = _face_union(np.ascontiguousarray(tree.level, dtype=np.int64),
+                             np.ascontiguousarray(tree.coords, dtype=np.int64), *tree.flat_tables())
+    return ids + 1, int(count)
 
 
 def summarise(tree: Octree, labels: np.ndarray, count: int, t0: float) -> Components:

@@ -1,4 +1,4 @@
-"""Command line: ``frepvdb run | validate | info | collide``. Exit 0 ok, 2 bad config or input, 1 failure."""
+"""Command line: ``frepvdb run | validate | info | collide | convert``. Exit 0 ok, 2 bad config or input, 1 failure."""
 
 from __future__ import annotations
 
@@ -61,10 +61,19 @@ def _terminate_on_sigterm():
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="frepvdb", description="FRep models and meshes to sparse OpenVDB grids.")
+    ap = argparse.ArgumentParser(
+        prog="frepvdb", description="FRep models and meshes to sparse OpenVDB grids.",
+        epilog="examples:\n  frepvdb run configs/demo.yaml --out outputs\n"
+               "  frepvdb run part.yaml --set domain.resolution=512 --set 'stages[0].voxelise.band=4'\n"
+               "  frepvdb convert part.stl part.vdb --voxel-size 0.01 --surface\n"
+               "  frepvdb convert part.vdb part_out.stl\n"
+               "Python: import frepvdb (docs/python-api.md)", formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="run one or more configs")
     r.add_argument("configs", nargs="+", type=Path)
+    r.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE", dest="overrides",
+                   help="override a config value, e.g. domain.resolution=512 or stages[0].voxelise.band=4 "
+                        "(YAML value; repeatable; checked like the config)")
     r.add_argument("--out", default="outputs", help="output root (default: outputs)")
     r.add_argument("--executor", choices=["local", "dask"], default=None, help="default: the config's, else local")
     r.add_argument("--workers", type=int, default=None)
@@ -74,6 +83,8 @@ def _parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_run)
     v = sub.add_parser("validate", help="parse and check a config; print it normalised")
     v.add_argument("config", type=Path)
+    v.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE", dest="overrides",
+                   help="override a config value (as for run)")
     v.add_argument("--debug", action="store_true", help="print tracebacks of failures")
     v.set_defaults(func=cmd_validate)
     i = sub.add_parser("info", help="describe the grids in a .vdb file")
@@ -86,13 +97,38 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--tolerance", type=float, default=None, help="finest cell (default: the smaller voxel size)")
     c.add_argument("--debug", action="store_true", help="print tracebacks of failures")
     c.set_defaults(func=cmd_collide)
+    _convert_parser(sub)
     return ap
+
+
+def _convert_parser(sub) -> None:
+    v = sub.add_parser(
+        "convert", help="mesh -> .vdb (frep, and --surface level set) or .vdb level set -> mesh",
+        description="One-step conversions, like vdb_tool -read part.stl -mesh2ls -write part.vdb. A mesh "
+                    "(.off .obj .stl .ply) becomes a .vdb with the 'frep' grid (BSP-field or ADF), and the "
+                    "'surface' level set with --surface; the domain is the mesh's bounds padded by 10%% and the "
+                    "band. A .vdb becomes a closed triangle mesh (.stl .3mf .ply .obj) of its 'surface' grid "
+                    "(else a level set, else 'frep').")
+    v.add_argument("input", type=Path, help="mesh (.off .obj .stl .ply) or .vdb")
+    v.add_argument("output", type=Path, help=".vdb for a mesh input; .stl .3mf .ply .obj for a .vdb input")
+    size = v.add_mutually_exclusive_group()
+    size.add_argument("--voxel-size", type=float, default=None, help="voxel edge, world units")
+    size.add_argument("--resolution", type=int, default=None,
+                      help="voxels along the mesh's longest side (default 256)")
+    v.add_argument("--band", type=float, default=3.0, help="narrow-band half-width in voxels (default 3)")
+    v.add_argument("--rfunc", choices=["min_max", "r0", "sardf"], default="min_max",
+                   help="R-functions of the BSP-field (default min_max: compiled per-cell tapes; r0, sardf: C1)")
+    v.add_argument("--method", choices=["bsp", "adf"], default="bsp", help="exact BSP-field or approximate ADF")
+    v.add_argument("--surface", action="store_true", help="also the 'surface' level set (eikonal distance)")
+    v.add_argument("--grid", default=None, help="grid of a .vdb input to mesh (default: surface, a level set, frep)")
+    v.add_argument("--debug", action="store_true", help="print tracebacks of failures")
+    v.set_defaults(func=cmd_convert)
 
 
 def cmd_validate(args) -> int:
     from pipeline.config import load_jobs
 
-    jobs = load_jobs(args.config)
+    jobs = load_jobs(args.config, overrides=args.overrides)
     # libyaml's emitter when present: a frames sweep prints thousands of documents
     dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
     print(yaml.dump_all([j.normalised for j in jobs], Dumper=dumper, sort_keys=False), end="")
@@ -150,7 +186,7 @@ def cmd_run(args) -> int:
     jobs = []
     for cfg in args.configs:
         try:
-            jobs.extend(load_jobs(cfg))
+            jobs.extend(load_jobs(cfg, overrides=args.overrides))
         except ConfigError as e:
             _print_problems(e)
             status = EXIT_INPUT
@@ -162,6 +198,8 @@ def cmd_run(args) -> int:
     try:
         check_unique_names(jobs)
         out = prepare_out_root(args.out)
+        if args.overrides:  # workers and bricks load their job by file: run the overridden config's file
+            jobs = _overridden_jobs(args.configs, args.overrides, out)
     except ConfigError as e:
         _print_problems(e)
         return EXIT_INPUT
@@ -190,6 +228,148 @@ def cmd_run(args) -> int:
             status = status if status == EXIT_INPUT else EXIT_FAIL
     _summary(rows, out, executor.describe())
     return status
+
+
+def _overridden_jobs(configs: list[Path], overrides: list[str], out: Path) -> list:
+    """The jobs of each config with ``--set`` applied, from its effective config written under
+    ``<out>/.frepvdb-configs/`` (pipeline.config.write_config)."""
+    from pipeline.config import apply_overrides, load_jobs, load_yaml, write_config
+
+    jobs = []
+    for cfg in configs:
+        root = load_yaml(cfg)
+        apply_overrides(root, overrides, str(cfg))
+        jobs.extend(load_jobs(write_config(root, cfg.resolve().parent, out, cfg.stem)))
+    return jobs
+
+
+#: default voxels along the mesh's longest side for ``convert``
+CONVERT_RESOLUTION = 256
+#: ``convert`` pads the mesh's bounds by this fraction of its longest side, plus the band
+CONVERT_PAD = 0.1
+
+
+def cmd_convert(args) -> int:
+    """mesh -> .vdb through a job (the runner, its checks and safe outputs), or .vdb -> mesh."""
+    from pipeline.meshio import SUFFIXES
+
+    src, dst = args.input.suffix.lower(), args.output.suffix.lower()
+    if src in SUFFIXES:
+        if dst != ".vdb":
+            return _usage(f"{args.output}: a mesh converts to a .vdb file (got {dst or 'no suffix'!r})")
+        return _mesh_to_vdb(args)
+    if src == ".vdb":
+        from pipeline.meshout import MESH_KINDS
+
+        if dst.lstrip(".") not in MESH_KINDS:
+            return _usage(f"{args.output}: a .vdb converts to a mesh file: .{', .'.join(MESH_KINDS)} "
+                          f"(got {dst or 'no suffix'!r})")
+        return _vdb_to_mesh(args)
+    return _usage(f"{args.input}: cannot convert {src or 'a file without suffix'!r} (use a mesh: "
+                  f"{' '.join(SUFFIXES)}, or a .vdb)")
+
+
+def _usage(message: str) -> int:
+    print(f"error: {message}", file=sys.stderr)
+    return EXIT_INPUT
+
+
+def _finite_positive(name: str, value: float | None) -> str | None:
+    import math
+
+    if value is not None and not (math.isfinite(value) and value > 0):
+        return f"{name} must be a finite number > 0, got {value:g}"
+    return None
+
+
+def convert_config(args, bounds) -> dict:
+    """The config ``convert`` runs for a mesh whose bounds are ``bounds`` (lo, hi)."""
+    import numpy as np
+
+    lo, hi = (np.asarray(b, float) for b in bounds)
+    extent = float((hi - lo).max())
+    h = args.voxel_size if args.voxel_size is not None else extent / (args.resolution or CONVERT_RESOLUTION)
+    pad = CONVERT_PAD * extent + (args.band + 1) * h
+    stages: list[dict] = [{"voxelise": {"band": float(args.band)}}]
+    grids = ["frep"]
+    if args.surface:
+        stages.append({"hfrep": {"density": False, "quality": False}})
+        grids.append("surface")
+    stages.append({"export": {"vdb": True, "grids": grids, "report": False}})
+    return {"name": "convert",
+            "domain": {"bounds": [(lo - pad).tolist(), (hi + pad).tolist()], "voxel_size": float(h)},
+            "model": {"mesh": {"path": str(args.input.resolve()), "method": args.method, "rfunc": args.rfunc}},
+            "stages": stages}
+
+
+def _mesh_to_vdb(args) -> int:
+    import os
+    import shutil
+    import tempfile
+
+    from pipeline.batch import make_executor, run_batch
+    from pipeline.config import load_jobs, write_config
+    from pipeline.meshio import MeshError, load_mesh
+
+    problem = (_finite_positive("--voxel-size", args.voxel_size) or _finite_positive("--band", args.band)
+               or (f"--resolution must be > 0, got {args.resolution}" if args.resolution is not None
+                   and args.resolution <= 0 else None))
+    if problem:
+        return _usage(problem)
+    try:
+        mesh, _ = load_mesh(args.input)
+    except MeshError as e:
+        return _usage(str(e))
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=".frepvdb-convert-", dir=args.output.parent))
+    try:
+        cfg = write_config(convert_config(args, mesh.bounds), Path.cwd(), work, "convert")
+        try:
+            jobs = load_jobs(cfg)
+        except ConfigError as e:  # the mesh's own problem (not closed, ...): the config is ours, not the user's
+            return _usage("; ".join(msg for *_, msg in e.problems))
+        executor = make_executor("local", None, None, jobs=1)
+        (row,) = run_batch(jobs, work, executor, force=True)
+        if row["status"] != "ok":
+            return _usage(row["message"]) if row["status"] == "input-error" else _fail(row["message"])
+        os.replace(work / "convert" / "convert.vdb", args.output)  # verified by the runner; one rename
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    print(f"{args.output}: {', '.join(jobs[0].stages[-1][1].grids)} (voxel size {jobs[0].domain.voxel_size:g}, "
+          f"{row.get('active_voxels')} active voxels, {row['seconds']:.2f} s)")
+    return EXIT_OK
+
+
+def _fail(message: str) -> int:
+    print(f"error: {message}", file=sys.stderr)
+    return EXIT_FAIL
+
+
+def _vdb_to_mesh(args) -> int:
+    from pipeline.meshout import WRITERS, zero_set
+    from pipeline.vdbio import vdb
+
+    if not args.input.is_file():
+        return _usage(f"{args.input}: file not found")
+    try:
+        grids = {g.name: g for g in vdb.readAll(str(args.input))[0]}
+    except Exception as e:  # noqa: BLE001 - OpenVDB raises plain RuntimeErrors here
+        return _usage(f"{args.input}: does not open as a .vdb ({_one_line(e, 120)})")
+    name = args.grid or next((n for n in ("surface", *(n for n, g in grids.items() if str(g.gridClass) ==
+                                                     "level set"), "frep") if n in grids), None)
+    if name is None or name not in grids:
+        return _usage(f"{args.input}: no grid {'named ' + repr(name) if name else 'to mesh'} "
+                      f"(grids: {', '.join(grids) or 'none'}; pick one with --grid)")
+    if not hasattr(grids[name], "convertToPolygons") or grids[name].valueTypeName != "float":
+        return _usage(f"{args.input}: grid {name!r} is {grids[name].valueTypeName}, not a float field")
+    mesh = zero_set(grids[name])
+    if len(mesh.triangles) == 0:
+        return _usage(f"{args.input}: grid {name!r} has no zero crossing to mesh")
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    entry = WRITERS[args.output.suffix.lower().lstrip(".")](args.output, mesh)
+    closed = "closed" if entry["open_edges"] == 0 else f"NOT closed: {entry['open_edges']} open edges"
+    print(f"{args.output}: {entry['triangles']} triangles from grid {name!r}, {closed}, volume {entry['volume']:.6g}")
+    return EXIT_OK
 
 
 def _print_problems(e: ConfigError) -> None:

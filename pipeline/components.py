@@ -233,10 +233,24 @@ class _CornerCache:
     """Field values at lattice points of the finest level, evaluated once (eq. 3 control range)."""
 
     def __init__(self, model: Node, origin: np.ndarray, step: float, t: float):
+        from pipeline.tape import compile_model
+
         self.model, self.origin, self.step, self.t = model, origin, step, t
         self.keys = np.zeros(0, np.int64)
         self.vals = np.zeros(0)
         self.evaluations = 0
+        self.tape = compile_model(model, t)  # the compiled model; None: the node tree evaluates
+
+    def evaluate(self, points: np.ndarray) -> np.ndarray:
+        """f at world points (N,3), NaN as -inf (outside), by the tape when the model has one."""
+        if self.tape is not None:
+            from pipeline.tape import evaluate_with
+
+            fv = evaluate_with(self.tape, points)
+        else:
+            fv = self.model.evaluate(points, self.t)
+        self.evaluations += len(points)
+        return np.where(np.isnan(fv), -np.inf, fv)
 
     def values(self, lattice: np.ndarray) -> np.ndarray:
         keys = pack(lattice.reshape(-1, 3))
@@ -247,10 +261,7 @@ class _CornerCache:
         vals[known] = self.vals[pos[known]]
         new = uniq[~known]
         if len(new):
-            pts = self.origin + unpack(new) * self.step
-            fv = self.model.evaluate(pts, self.t)
-            vals[~known] = np.where(np.isnan(fv), -np.inf, fv)
-            self.evaluations += len(new)
+            vals[~known] = self.evaluate(self.origin + unpack(new) * self.step)
             allk = np.concatenate([self.keys, new])
             order = np.argsort(allk, kind="stable")
             self.keys, self.vals = allk[order], np.concatenate([self.vals, vals[~known]])[order]
@@ -270,17 +281,16 @@ _CHILD_IDX = np.array([[int(np.dot(o + c, (9, 3, 1))) for c in _CORNERS] for o i
 
 def _child_corner_values(cache: _CornerCache, parents: np.ndarray, pvals: np.ndarray, scale: int) -> np.ndarray:
     """Corner values of the 8 children of every parent, (P*8, 8): the parent's corners are
-    reused and only the 19 new lattice points per parent are evaluated (shared ones once)."""
+    reused and only the 19 new lattice points per parent are evaluated."""
     if len(parents) == 0:
         return np.zeros((0, 8))
     lat = np.empty((len(parents), 27))
     lat[:, _EVEN27] = pvals[:, _FROM_PARENT]
     pts = (2 * parents[:, None, :] + _LAT27[None, ~_EVEN27]) * scale
-    keys = pack(pts.reshape(-1, 3))
-    uniq, inv = np.unique(keys, return_inverse=True)
-    fv = cache.model.evaluate(cache.origin + unpack(uniq) * cache.step, cache.t)
-    cache.evaluations += len(uniq)
-    lat[:, ~_EVEN27] = np.where(np.isnan(fv), -np.inf, fv)[inv.reshape(-1)].reshape(len(parents), -1)
+    # points shared by neighbouring parents are evaluated once per parent: with the compiled
+    # model that is cheaper than finding the duplicates (a sort of every key)
+    fv = cache.evaluate(cache.origin + pts.reshape(-1, 3) * cache.step)
+    lat[:, ~_EVEN27] = fv.reshape(len(parents), -1)
     return lat[:, _CHILD_IDX].reshape(-1, 8)
 
 
@@ -622,6 +632,117 @@ def point_labels(comp: Components, points: np.ndarray) -> np.ndarray:
     return out
 
 
+_OFF20 = 1 << 20  # pipeline.grid.pack_keys offset
+
+
+@numba.njit(cache=True)
+def _block_row(bkeys, x, y, z):
+    """Row of the block with origin (x, y, z) in the sorted pack_keys ``bkeys``, -1 if absent."""
+    q = ((x + _OFF20) << 42) | ((y + _OFF20) << 21) | (z + _OFF20)
+    return _bsearch(bkeys, 0, bkeys.shape[0], q)
+
+
+@numba.njit(cache=True)
+def _paint_cells(bkeys, origins, level, coords, labels, depth, imin, lab, fine):
+    """Write every kept cell's label into the voxels of the blocks it covers (finest cell =
+    one voxel: cell c holds voxel imin + c << (depth - level)); ``fine`` marks the voxels of
+    finest-level cells. A cell costs one block lookup per 8^3 block it spans, not per voxel.
+    Returns how many finest cells fell on a block (the caller checks they all did)."""
+    painted = 0
+    for r in range(level.shape[0]):
+        span = 1 << (depth - level[r])
+        v0 = np.empty(3, np.int64)
+        for a in range(3):
+            v0[a] = imin[a] + (coords[r, a] << (depth - level[r]))
+        b0 = (v0 >> 3) << 3
+        b1 = ((v0 + span - 1) >> 3) << 3
+        for bx in range(b0[0], b1[0] + 1, 8):
+            for by in range(b0[1], b1[1] + 1, 8):
+                for bz in range(b0[2], b1[2] + 1, 8):
+                    row = _block_row(bkeys, bx, by, bz)
+                    if row < 0:
+                        continue
+                    if span == 1:
+                        painted += 1
+                    i0, i1 = max(v0[0] - bx, 0), min(v0[0] + span - bx, 8)
+                    j0, j1 = max(v0[1] - by, 0), min(v0[1] + span - by, 8)
+                    k0, k1 = max(v0[2] - bz, 0), min(v0[2] + span - bz, 8)
+                    for i in range(i0, i1):
+                        for j in range(j0, j1):
+                            for k in range(k0, k1):
+                                lab[row, i, j, k] = labels[r]
+                                fine[row, i, j, k] = span == 1
+    return painted
+
+
+@numba.njit(cache=True, parallel=True)
+def _nearest_fine(active, lab, fine, nbr27, offsets):
+    """Active voxels outside every kept cell take the label of the nearest finest-cell voxel
+    (``offsets`` sorted by length, all shorter than a block: the first hit is the nearest).
+    Returns the labels and a mask of the voxels with no hit within the offsets."""
+    out = lab.copy()
+    miss = np.zeros(active.shape, np.bool_)
+    for b in numba.prange(active.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if not active[b, i, j, k] or lab[b, i, j, k] != 0:
+                        continue
+                    hit = False
+                    for m in range(offsets.shape[0]):
+                        x, y, z = i + offsets[m, 0], j + offsets[m, 1], k + offsets[m, 2]
+                        dx, dy, dz = (x >> 3) + 1, (y >> 3) + 1, (z >> 3) + 1  # -1, 0, 1 -> 0..2
+                        n = nbr27[b, dx * 9 + dy * 3 + dz]
+                        if n < 0:
+                            continue
+                        x, y, z = x & 7, y & 7, z & 7
+                        if fine[n, x, y, z]:
+                            out[b, i, j, k] = lab[n, x, y, z]
+                            hit = True
+                            break
+                    if not hit:
+                        miss[b, i, j, k] = True
+    return out, miss
+
+
+_NEAR_R = 4
+_NEAR_OFFSETS = np.array([[i, j, k] for i in range(-_NEAR_R, _NEAR_R + 1) for j in range(-_NEAR_R, _NEAR_R + 1)
+                          for k in range(-_NEAR_R, _NEAR_R + 1) if 0 < i * i + j * j + k * k <= _NEAR_R**2],
+                         np.int64)
+_NEAR_OFFSETS = _NEAR_OFFSETS[np.argsort((_NEAR_OFFSETS**2).sum(axis=1), kind="stable")]
+
+
+def block_labels(comp: Components, blocks, index_min) -> np.ndarray:
+    """(L,8,8,8) labels of every active voxel of a BlockGrid, equal to :func:`point_labels` at
+    the voxel centres, for an octree whose finest cell is the voxel (cell c holds voxel
+    ``index_min + c``): the kept cells paint their labels on the blocks they cover (one lookup
+    per cell and block), and a voxel outside every kept cell takes the label of the nearest
+    finest-cell voxel, searched in its 27 neighbouring blocks (within 4 voxels; the rare voxel
+    farther from all of them, or a finest cell on no block, goes to :func:`point_labels`)."""
+    from pipeline.eikonal import block_neighbours27
+    from pipeline.grid import LEAF
+
+    n = len(blocks.origins)
+    lab = np.zeros((n, LEAF, LEAF, LEAF), np.int64)
+    if comp.count == 0 or n == 0:
+        return lab
+    tree = comp.tree
+    fine = np.zeros(lab.shape, bool)
+    imin = np.asarray(index_min, np.int64)
+    painted = _paint_cells(blocks._keys, blocks.origins, tree.level.astype(np.int64), tree.coords.astype(np.int64),
+                           comp.labels.astype(np.int64), int(tree.depth), imin, lab, fine)
+    lab = np.where(blocks.active, lab, 0)
+    if painted != int((tree.level == tree.depth).sum()):  # a finest cell off the blocks: no local search
+        miss = blocks.active & (lab == 0)
+    else:
+        lab, miss = _nearest_fine(blocks.active, lab, fine, block_neighbours27(blocks), _NEAR_OFFSETS)
+    if miss.any():
+        b, i, j, k = np.nonzero(miss)
+        ijk = blocks.origins[b] + np.stack([i, j, k], axis=1)
+        lab[b, i, j, k] = point_labels(comp, ijk * blocks.voxel_size)
+    return lab
+
+
 # --- section 4.3: separation fields ------------------------------------------------------------------
 
 
@@ -675,6 +796,88 @@ def _box_query(qlo, qhi, blo, bhi, bkeys, border, binsize, reach, mode, init):
     return out_lo, out_hi
 
 
+@numba.njit(cache=True)
+def _group_candidates(glo, ghi, c, rg, blo, bhi, bkeys, border, binsize, reach, init):
+    """Boxes that can be nearer than ``init`` to a point of the group (bounding box glo..ghi,
+    centre c, radius rg), sorted by their distance from c; returns (rows, distances)."""
+    x0 = int(np.floor((glo[0] - reach) / binsize))
+    x1 = int(np.floor((ghi[0] + reach) / binsize))
+    y0 = int(np.floor((glo[1] - reach) / binsize))
+    y1 = int(np.floor((ghi[1] + reach) / binsize))
+    z0 = int(np.floor((glo[2] - reach) / binsize))
+    z1 = int(np.floor((ghi[2] + reach) / binsize))
+    rows = np.empty(64, np.int64)
+    dist = np.empty(64)
+    n = 0
+    for bx in range(x0, x1 + 1):
+        for by in range(y0, y1 + 1):
+            for bz in range(z0, z1 + 1):
+                key = ((bx + border) << 42) | ((by + border) << 21) | (bz + border)
+                s = np.searchsorted(bkeys, key)
+                while s < bkeys.shape[0] and bkeys[s] == key:
+                    d2 = 0.0
+                    for a in range(3):
+                        g = max(blo[s, a] - c[a], 0.0, c[a] - bhi[s, a])
+                        d2 += g * g
+                    d = np.sqrt(d2)
+                    if d - rg < init:  # d(p, box) >= d(c, box) - |p - c|
+                        if n == rows.shape[0]:
+                            rows = np.concatenate((rows, np.empty(n, np.int64)))
+                            dist = np.concatenate((dist, np.empty(n)))
+                        rows[n] = s
+                        dist[n] = d
+                        n += 1
+                    s += 1
+    order = np.argsort(dist[:n])
+    return rows[:n][order], dist[:n][order]
+
+
+@numba.njit(cache=True, parallel=True)
+def _grouped_distance(pts, order, gstart, blo, bhi, bkeys, border, binsize, reach, init):
+    """Mode 0 of :func:`_box_query` (min distance from each point to the boxes, at most
+    ``init``) for points grouped in space (``order[gstart[g]:gstart[g+1]]``): the candidate
+    boxes are gathered once per group and sorted by distance from the group's centre, and a
+    point stops at the first box whose lower bound d(c, box) - |p - c| reaches its best
+    distance. Same boxes, same formula: the same values as the point-by-point query."""
+    out = np.full(pts.shape[0], init)
+    for g in numba.prange(gstart.shape[0] - 1):
+        a, b = gstart[g], gstart[g + 1]
+        glo = np.full(3, np.inf)
+        ghi = np.full(3, -np.inf)
+        for t in range(a, b):
+            for ax in range(3):
+                glo[ax] = min(glo[ax], pts[order[t], ax])
+                ghi[ax] = max(ghi[ax], pts[order[t], ax])
+        c = 0.5 * (glo + ghi)
+        rg = 0.0
+        for t in range(a, b):
+            r2 = 0.0
+            for ax in range(3):
+                r2 += (pts[order[t], ax] - c[ax]) ** 2
+            rg = max(rg, np.sqrt(r2))
+        rows, dist = _group_candidates(glo, ghi, c, rg, blo, bhi, bkeys, border, binsize, reach, init)
+        for t in range(a, b):
+            q = order[t]
+            r2 = 0.0
+            for ax in range(3):
+                r2 += (pts[q, ax] - c[ax]) ** 2
+            dp = np.sqrt(r2)
+            best = init
+            for m in range(rows.shape[0]):
+                if dist[m] - dp >= best:
+                    break
+                s = rows[m]
+                d2 = 0.0
+                for ax in range(3):
+                    gg = max(blo[s, ax] - pts[q, ax], 0.0, pts[q, ax] - bhi[s, ax])
+                    d2 += gg * gg
+                d = np.sqrt(d2)
+                if d < best:
+                    best = d
+            out[q] = best
+    return out
+
+
 class _BoxIndex:
     """Boxes of one size class binned by centre on a uniform grid (a sparse spatial hash)."""
 
@@ -689,6 +892,21 @@ class _BoxIndex:
         keys = (b[:, 0] << 42) | (b[:, 1] << 21) | b[:, 2]
         order = np.argsort(keys, kind="stable")
         self.keys, self.lo, self.hi = keys[order], np.ascontiguousarray(lo[order]), np.ascontiguousarray(hi[order])
+
+    def distance(self, points: np.ndarray, init: float) -> np.ndarray:
+        """Min distance from each point to the boxes, at most ``init`` (mode 0 of query), with
+        the points grouped in cubes of one bin (:func:`_grouped_distance`)."""
+        p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        if len(p) == 0:
+            return np.zeros(0)
+        g = np.floor(p / self.binsize).astype(np.int64)
+        g -= g.min(axis=0)
+        key = (g[:, 0] << 42) | (g[:, 1] << 21) | g[:, 2]
+        order = np.argsort(key, kind="stable")
+        ks = key[order]
+        gstart = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1], True]).astype(np.int64)
+        return _grouped_distance(p, order, gstart, self.lo, self.hi, self.keys, self.OFFSET, self.binsize,
+                                 self.reach, float(init))
 
     def query(self, qlo: np.ndarray, qhi: np.ndarray, mode: int, init: float) -> tuple[np.ndarray, np.ndarray]:
         return _box_query(np.ascontiguousarray(qlo, dtype=np.float64), np.ascontiguousarray(qhi, dtype=np.float64),
@@ -735,7 +953,7 @@ class ClusterField:
         if self.method == "surface":
             d = np.full(len(p), self.clamp)
             for ix in self.index:
-                d = np.minimum(d, ix.query(p, p, 0, self.clamp)[0])
+                d = np.minimum(d, ix.distance(p, self.clamp))
             return np.where(self._inside(p), d, -d)
         g = np.full(len(p), -self.clamp)
         for ix in self.index:

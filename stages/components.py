@@ -68,7 +68,8 @@ def run(ctx, p: Params) -> dict:
     origin, size, depth, region = octree_frame(job.domain, p.tolerance, p.depth)
     found = _detect(ctx, origin, size, depth, region)
     blocks: BlockGrid = ctx.blocks["frep"]
-    labels = _voxel_labels(found, blocks)
+    fine_is_voxel = np.isclose(size / 2**depth, job.domain.voxel_size, rtol=1e-9)
+    labels = _voxel_labels(found, blocks, job.domain.index_min if fine_is_voxel else None)
     kept = _kept(found, p.keep)
     section = {"count": found.count, "volumes": found.volumes.tolist(),
                "volume_bounds": found.volume_bounds.tolist(), "tolerance": size / 2**depth,
@@ -102,8 +103,12 @@ def _detect(ctx, origin, size: float, depth: int, region) -> cc.Components:
                              run_map=ctx.map, source=ref_of(job))
 
 
-def _voxel_labels(found: cc.Components, blocks: BlockGrid) -> np.ndarray:
-    """(L,8,8,8) labels: every active voxel gets the label of its cell (cc.point_labels)."""
+def _voxel_labels(found: cc.Components, blocks: BlockGrid, index_min=None) -> np.ndarray:
+    """(L,8,8,8) labels: every active voxel gets the label of its cell (cc.point_labels); with
+    the voxel as the finest cell (``index_min`` given) by painting cells onto the leaves
+    (cc.block_labels), the same labels without a per-voxel octree search."""
+    if index_min is not None:
+        return cc.block_labels(found, blocks, index_min)
     out = np.zeros(blocks.active.shape, np.int64)
     b, i, j, k = np.nonzero(blocks.active)
     ijk = blocks.origins[b] + np.stack([i, j, k], axis=1)

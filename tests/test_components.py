@@ -454,3 +454,39 @@ def test_two_component_knot_mesh():
     pad = 0.05 * size
     found = cc.detect(model, 0.5 * (lo + hi) - size / 2, size, 5, region=(lo - pad, hi + pad))
     assert found.count == 2
+
+
+@pytest.mark.parametrize("gap", [0.03, 0.12])
+def test_block_labels_equal_point_labels_on_every_active_voxel(gap):
+    """The stage's painted labels (cc.block_labels) are the labels point_labels gives at the voxel
+    centres, including band voxels outside every kept cell (nearest finest cell), for pieces far
+    apart and for pieces closer than the band."""
+    from types import SimpleNamespace
+
+    from pipeline.grid import BlockGrid
+    from stages.components import octree_frame
+
+    h, r = 1.0 / 40, 0.3
+    model = node({"union": [sphere((-r - gap / 2, 0.03, 0), r), sphere((r + gap / 2, 0, 0.01), r)]})
+    imin, imax = np.array([-40, -20, -20]), np.array([39, 19, 19])
+    dom = SimpleNamespace(voxel_size=h, dims=imax - imin + 1, index_min=imin, index_max=imax)
+    origin, size, depth, region = octree_frame(dom, None, None)
+    found = cc.detect(model, origin, size, depth, 0.0, region)
+    assert found.count == 2
+    o = np.stack(np.meshgrid(*[np.arange(lo, hi + 1, 8) for lo, hi in zip((imin // 8) * 8, imax, strict=True)],
+                             indexing="ij"), -1).reshape(-1, 3)
+    loc = np.stack(np.meshgrid(np.arange(8), np.arange(8), np.arange(8), indexing="ij"), -1)
+    ijk = o[:, None, None, None, :] + loc[None]
+    f = model.evaluate(ijk.reshape(-1, 3) * h).reshape(len(o), 8, 8, 8)
+    inside_dom = np.all((ijk >= imin) & (ijk <= imax), axis=-1)
+    active = (np.abs(f) < 3 * h) & inside_dom
+    keep = active.any(axis=(1, 2, 3))
+    blocks = BlockGrid(h, 3 * h, o[keep], f[keep].astype(np.float32), active[keep])
+    got = cc.block_labels(found, blocks, imin)
+    b, i, j, k = np.nonzero(blocks.active)
+    pts = (blocks.origins[b] + np.stack([i, j, k], axis=1)) * h
+    want = cc.point_labels(found, pts)
+    assert np.all(want > 0)
+    assert (found.tree.locate(pts) < 0).sum() > 1000  # the nearest-cell search is exercised
+    assert np.array_equal(got[b, i, j, k], want)
+    assert not got[~blocks.active].any()

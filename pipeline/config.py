@@ -609,6 +609,7 @@ class Job:
     executor: ExecutorConfig | None = None
     job_sha256: str = ""  # hash of the normalised job and its input files: the key for resume
     name_line: int | None = None  # line of its ``name:`` key (None: the name is the file's stem)
+    memory_estimate: dict = field(default_factory=dict)  # stage -> estimated peak bytes (_check_memory)
 
 
 def _check_top_keys(root: dict, file: str) -> None:
@@ -1012,9 +1013,10 @@ ROOT_CELL_BYTES = 160  # per top-level cell of the enumeration: its index arrays
 
 def _check_memory(job: Job, ctx: _Ctx, base: tuple = ()) -> None:
     """Refuse a domain whose grids would not fit in this machine's memory (estimates): the
-    top-level cells every voxelisation enumerates, the narrow band of voxelise, and the
-    interior that the hfrep stage solves completely."""
-    from pipeline.voxelise import estimate_band_bytes, estimate_interior_voxels, root_size_for
+    top-level cells every voxelisation enumerates, then per stage (kept in ``job.memory_estimate``,
+    which the stages write into the manifest) the narrow band every stage holds plus the voxels
+    the hfrep stage solves at full resolution; the largest stage must fit."""
+    from pipeline.voxelise import estimate_band_bytes, root_size_for
 
     voxelise = next((p for n, p in job.stages if n == "voxelise"), None)
     if voxelise is None or job.domain.dims.max() < 512:
@@ -1024,13 +1026,39 @@ def _check_memory(job: Job, ctx: _Ctx, base: tuple = ()) -> None:
     roots = float(np.prod(np.ceil(job.domain.dims / root_size_for(job.domain.dims, voxelise.block)) + 1))
     if roots * ROOT_CELL_BYTES > avail:
         _refuse_memory(job, ctx, base, roots * ROOT_CELL_BYTES, f"the {roots:.3g} top-level cells of voxelise", avail)
-    need = estimate_band_bytes(job.model, job.domain, voxelise.band, job.t)
-    what = "its narrow band"
-    if any(n == "hfrep" for n, _ in job.stages):
-        need += HFREP_BYTES_PER_VOXEL * estimate_interior_voxels(job.model, job.domain, voxelise.band, job.t)
-        what = "its narrow band and the interior distance of the hfrep stage"
-    if need > avail:
-        _refuse_memory(job, ctx, base, need, what, avail)
+    band = estimate_band_bytes(job.model, job.domain, voxelise.band, job.t)
+    est = {n: band for n, _ in job.stages}  # every stage holds the band grids
+    hfrep = next((p for n, p in job.stages if n == "hfrep"), None)
+    if hfrep is not None:
+        est["hfrep"] = band + HFREP_BYTES_PER_VOXEL * _hfrep_voxels(job, hfrep, voxelise.band, band)
+    job.memory_estimate = {n: int(v) for n, v in est.items()}
+    stage = max(est, key=est.get)
+    if est[stage] > avail:
+        what = "its narrow band"
+        if stage == "hfrep":
+            what += " and the " + ("interior distance" if _hfrep_fine(hfrep) else "distance near the surface")
+            what += " of the hfrep stage"
+        _refuse_memory(job, ctx, base, est[stage], what, avail)
+
+
+SHELL_BLOCKS_PER_LEAF = 5  # fine blocks of a coarse-interior hfrep solve per band leaf (4.4 measured, demo 512^3)
+
+
+def _hfrep_fine(p: Any) -> bool:
+    """Whether the hfrep stage solves the whole interior at full resolution (stages.hfrep)."""
+    return (getattr(p, "interior", "fine") == "fine" or bool(p.attributes) or p.surface == "full"
+            or p.max_distance == "domain" or p.solver == "hfim")
+
+
+def _hfrep_voxels(job: Job, p: Any, band_vox: float, band_bytes: float) -> float:
+    """Voxels the hfrep stage solves at full resolution: the whole interior, or with the coarse
+    interior (stages.hfrep._inside_distance) a shell of blocks around the band."""
+    from pipeline.voxelise import LEAF_PEAK_BYTES, WORK_BYTES, estimate_interior_voxels
+
+    if _hfrep_fine(p):
+        return estimate_interior_voxels(job.model, job.domain, band_vox, job.t)
+    leaves = max(band_bytes - WORK_BYTES, 0.0) / LEAF_PEAK_BYTES
+    return SHELL_BLOCKS_PER_LEAF * leaves * 512.0
 
 
 def _refuse_memory(job: Job, ctx: _Ctx, base: tuple, need: float, what: str, avail: float) -> None:

@@ -67,6 +67,7 @@ class EikonalResult:
     inside: np.ndarray
     max_distance: float | None
     stats: dict = field(default_factory=dict)
+    coarse_inside: np.ndarray | None = None  # (C,3) origins of inside blocks left to a coarse solve
 
 
 # --- block topology ---------------------------------------------------------------------
@@ -272,6 +273,7 @@ def solve_distance(
     order: int = 2,
     brick: int | None = None,
     map_fn=None,
+    inside_distance: float | None = None,
 ) -> EikonalResult:
     """Unsigned distance to the zero set of ``frep`` by the block Fast Iterative Method.
 
@@ -285,6 +287,9 @@ def solve_distance(
     (first order, then the second-order scheme from that solution; see :mod:`pipeline.fim`).
     ``brick``: split the FIM into bricks of this many voxels run through ``map_fn`` (an
     executor's ``map``; inline when None) with ghost exchange (:mod:`pipeline.eikonal_bricks`).
+    ``inside_distance``: how deep (world units) to solve inside; None: the whole interior. The
+    inside blocks that cannot hold a voxel that close to the band are left out and listed in
+    ``coarse_inside`` (pipeline.hfim.interior_tiles solves them on leaf-sized cells).
     """
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, not {order!r}")
@@ -301,7 +306,10 @@ def solve_distance(
     band_mask, band_row = _lattice(band.origins, lat_lo, dims)
     inside_blocks = _inside_box_blocks(inside_boxes, lat_lo, dims)
     block_sign = _block_signs(band_mask, band_row, _face_sign_sums(band_sign), inside_blocks)
-    keep = band_mask | (block_sign > 0) | ((block_sign < 0) & _near_band(band_mask, max_vox))
+    deep = None if inside_distance is None else float(inside_distance) / h
+    near_in = _near_band(band_mask, deep)
+    keep = band_mask | ((block_sign > 0) & near_in) | ((block_sign < 0) & _near_band(band_mask, max_vox))
+    coarse_inside = None if deep is None else (np.argwhere((block_sign > 0) & ~near_in) + lat_lo) << 3
 
     grid, sign, f, fact = _assemble(band, band_sign, block_sign, keep, lat_lo)
     _flood_sign(sign, block_neighbours(grid))
@@ -342,7 +350,11 @@ def solve_distance(
         "setup_seconds": round(t1 - t0, 4),
         "fim_seconds": round(t2 - t1, 4),
     }
-    return EikonalResult(dist, inside, None if max_distance is None else float(max_distance), stats)
+    if coarse_inside is not None:
+        stats["inside_distance"] = float(inside_distance)
+        stats["coarse_inside_blocks"] = int(len(coarse_inside))
+    return EikonalResult(dist, inside, None if max_distance is None else float(max_distance), stats,
+                         coarse_inside)
 
 
 def _solve(run_pass, d, state, seeds, order: int) -> dict:

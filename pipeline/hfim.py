@@ -313,6 +313,50 @@ def hierarchical_distance(
     return HierarchicalResult(fine, out, (lo, hi), stats)
 
 
+def interior_tiles(fine: EikonalResult, domain_index_bounds, order: int = 2, tol: float = 1e-6
+                   ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Distance on the inside blocks the fine solve left out (``fine.coarse_inside``), one value
+    per leaf-sized cell: the level-1 step of :func:`hierarchical_distance` turned inwards. Nodes
+    sit at leaf centres (spacing 8 voxels); a node whose leaf the fine level solved completely is
+    frozen at the fine value there (mean of the 8 voxels around the centre), the nodes of the
+    left-out blocks are solved by the node FIM (first order, then second order as the fine
+    solve), every other node is excluded. Returns (tile origins (C,3), distance in world units
+    at each tile's centre, counters). The written tile holds that one value for its 8^3 voxels:
+    within the node's FIM error plus 4 sqrt(3) voxels (the distance is 1-Lipschitz) of the fine
+    solve; docs/hfim.md gives the measured error."""
+    t0 = time.perf_counter()
+    origins = np.zeros((0, 3), np.int64) if fine.coarse_inside is None else fine.coarse_inside
+    if len(origins) == 0:
+        return origins, np.zeros(0), {"tiles": 0}
+    lo, hi = (np.asarray(b, dtype=np.int64) for b in domain_index_bounds)
+    cell = LEVEL_CELLS[0]
+    lat_lo, shape = _lattice(lo, hi, cell)
+    vals, frozen, inside = _fine_nodes(fine, lat_lo, shape)
+    idx = tuple(((origins // cell) - lat_lo).T)
+    state = np.full(shape, EXCLUDED, np.int8)
+    state[frozen] = FROZEN
+    state[idx] = FREE
+    inside[idx] = True
+    vals[idx] = np.inf
+    up, _ = node_fim(vals, state, inside, float(cell), np.inf, tol * cell, False, 1 << 62)
+    if order == 2:
+        up2, _ = node_fim(vals, state, inside, float(cell), np.inf, tol * cell, True,
+                          SECOND_ORDER_VISITS * max(len(origins), 1))
+        up += up2
+    d = vals[idx]
+    ok = np.isfinite(d)  # a left-out block with no solved path to the fine level stays unsolved
+    h = float(fine.distance.voxel_size)
+    st = {"tiles": int(ok.sum()), "unreached": int((~ok).sum()), "updates": int(up),
+          "seconds": round(time.perf_counter() - t0, 4)}
+    return origins[ok], d[ok] * h, st
+
+
+def fill_tiles(grid, origins: np.ndarray, values: np.ndarray, cell: int = LEAF) -> None:
+    """Active constant tiles of edge ``cell`` voxels (``grid.fill`` over a whole leaf makes a tile)."""
+    for o, v in zip(np.asarray(origins, np.int64).tolist(), np.asarray(values, float).tolist(), strict=True):
+        grid.fill(tuple(o), (o[0] + cell - 1, o[1] + cell - 1, o[2] + cell - 1), v, True)
+
+
 def sample_distance(res: HierarchicalResult, ijk: np.ndarray) -> np.ndarray:
     """Distance (voxel units) at voxel indices from the coarse levels: the finest level whose
     trilinear interpolation is defined there (no fine level: use the fine grid for that)."""

@@ -65,6 +65,8 @@ def octree_frame(domain, tolerance: float | None, depth: int | None) -> tuple[np
 
 def run(ctx, p: Params) -> dict:
     job = ctx.job
+    if ctx.job.memory_estimate:  # the per-stage peak estimate checked before the run (config._check_memory)
+        ctx.manifest.setdefault("memory_estimate_bytes", dict(ctx.job.memory_estimate))
     origin, size, depth, region = octree_frame(job.domain, p.tolerance, p.depth)
     found = _detect(ctx, origin, size, depth, region)
     blocks: BlockGrid = ctx.blocks["frep"]

@@ -35,6 +35,8 @@ def run(ctx, p: Params) -> dict:
     from pipeline.vdbio import write_vdb
     from pipeline.vtkio import write_vtk_outputs
 
+    if ctx.job.memory_estimate:  # the per-stage peak estimate checked before the run (config._check_memory)
+        ctx.manifest.setdefault("memory_estimate_bytes", dict(ctx.job.memory_estimate))
     names = [n for n in ctx.grids if p.grids is None or n in p.grids]
     grids = {n: ctx.grids[n] for n in names}
     stats: dict = {"grids": names}

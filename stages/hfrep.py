@@ -52,6 +52,10 @@ class Params(StageParams):
     surface: Literal["band", "full"] = Field(
         default="band", description="'surface' level set: narrow band of the voxelise band, or every solved voxel")
     quality: bool = Field(default=True, description="field-quality report into the manifest")
+    interior: Literal["coarse", "fine"] = Field(
+        default="coarse", description="'coarse': deeper inside than max_distance (and the band) as leaf-sized "
+        "tiles from an 8-voxel solve (docs/hfim.md); 'fine': the whole interior at full resolution "
+        "(always with attributes, surface: full, max_distance: domain or solver: hfim)")
     attributes: list[Attribute] = Field(default_factory=list, description="attribute grids of d, x, y, z, t")
 
     @field_validator("attributes")
@@ -76,6 +80,8 @@ def run(ctx, p: Params) -> dict:
     from pipeline.hfrep import density_grid, hfrep_blocks
     from pipeline.quality import field_report
 
+    if ctx.job.memory_estimate:  # the per-stage peak estimate checked before the run (config._check_memory)
+        ctx.manifest.setdefault("memory_estimate_bytes", dict(ctx.job.memory_estimate))
     dom, frep = ctx.job.domain, ctx.blocks["frep"]
     h, band = dom.voxel_size, float(ctx.data["band"])
     maxd = 10 * h if p.max_distance is None else p.max_distance
@@ -89,7 +95,7 @@ def run(ctx, p: Params) -> dict:
         res = hres.fine
     else:
         res = solve_distance(frep, maxd, (dom.index_min, dom.index_max), ctx.data["inside_boxes"], order=p.order,
-                             **bricks)
+                             inside_distance=_inside_distance(p, maxd, band * h), **bricks)
     meta = ctx.grid_metadata("hfrep", p)
     hf = hfrep_blocks(frep, res, p.step, p.slope)
     for name in ("surface", "hfrep", "density"):  # keep these first in the file, attributes after
@@ -104,8 +110,14 @@ def run(ctx, p: Params) -> dict:
     hgrid = frep_to_vdb(hf, np.zeros((0, 2, 3), np.int64), "hfrep")
     hgrid.updateMetadata({**meta, "step": p.step, "slope": p.slope})
     del hf
+    tiles = _interior(res, dom, p.order, stats)
+    if tiles is not None:  # deep inside the step is +1: hfrep = d, density = 1 (d is past the ramp)
+        from pipeline.hfim import fill_tiles
+        fill_tiles(hgrid, tiles[0], tiles[1])
     if p.density:
         ctx.grids["density"] = density_grid(res, band * h)
+        if tiles is not None:
+            fill_tiles(ctx.grids["density"], tiles[0], np.clip(tiles[1] / (band * h), 0.0, 1.0))
         ctx.grids["density"].updateMetadata(meta)
     else:
         del ctx.grids["density"]
@@ -118,6 +130,25 @@ def run(ctx, p: Params) -> dict:
     surface.updateMetadata(meta)
     ctx.grids["surface"], ctx.grids["hfrep"] = surface, hgrid
     return stats
+
+
+def _inside_distance(p: Params, maxd, band_world: float) -> float | None:
+    """How deep the fine solve goes inside: max_distance (at least the band) with the coarse
+    interior, None (all of it) where the whole interior is wanted at full resolution."""
+    if p.interior == "fine" or p.attributes or p.surface == "full" or p.max_distance == "domain":
+        return None
+    return max(float(maxd), band_world)
+
+
+def _interior(res, dom, order: int, stats: dict):
+    """(tile origins, distances) of the coarse interior (pipeline.hfim.interior_tiles), or None."""
+    if res.coarse_inside is None:
+        return None
+    from pipeline.hfim import interior_tiles
+
+    origins, values, st = interior_tiles(res, (dom.index_min, dom.index_max), order)
+    stats["coarse_interior"] = st
+    return origins, values
 
 
 def _attributes(ctx, p: Params, res, hf, band: float, meta: dict) -> dict:

@@ -126,7 +126,7 @@ def test_memory_check_counts_the_hfrep_interior(tmp_path, capsys, monkeypatch):
     cfg = tmp_path / "big.yaml"
     cfg.write_text(text)
     assert main(["validate", str(cfg)]) == 0
-    cfg.write_text(text + "  - hfrep: {}\n")
+    cfg.write_text(text + "  - hfrep: {interior: fine}\n")
     assert main(["validate", str(cfg)]) == 2
     err = capsys.readouterr().err
     assert "big.yaml:2 domain.resolution: this domain needs an estimated" in err

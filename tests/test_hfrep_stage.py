@@ -316,3 +316,73 @@ stages:
     assert "bad.yaml:4 model.hfrep: the child has no surface inside the hfrep bounds" in err
     err = _fails(tmp_path, capsys, text.replace("resolution: 16\nstages", "resolution: 16\n    voxel_size: 0.1\nstages"))
     assert "model.hfrep: give at most one of resolution or voxel_size" in err
+
+
+def test_coarse_interior_matches_the_fine_solve(tmp_path) -> None:
+    """interior: coarse (the default) stores the deep interior as leaf tiles: the same active
+    voxels, identical values within max_distance of the surface (and density everywhere), and
+    deeper inside within the stated bound (4 sqrt(3) voxels + 1) of the fine solve and of the
+    exact distance."""
+    n, r = 128, 0.8
+    h = 2.0 / n
+    out = {}
+    for mode in ("coarse", "fine"):
+        cfg = tmp_path / f"{mode}.yaml"
+        cfg.write_text(f"name: {mode}\ndomain: {{bounds: [[-1, -1, -1], [1, 1, 1]], resolution: {n}}}\n"
+                       f"model:\n  sphere: {{center: [{C[0]}, {C[1]}, {C[2]}], radius: {r}}}\n"
+                       f"stages:\n  - voxelise: {{band: 3}}\n  - hfrep: {{interior: {mode}, quality: false}}\n"
+                       "  - export: {vdb: true}\n")
+        assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+        grids, _ = vdb.readAll(str(tmp_path / "out" / mode / f"{mode}.vdb"))
+        man = json.loads((tmp_path / "out" / mode / "manifest.json").read_text())
+        out[mode] = ({g.name: g for g in grids}, man)
+    (gc, mc), (gf, _) = out["coarse"], out["fine"]
+    st_ = next(s for s in mc["stages"] if s["name"] == "hfrep")["stats"]
+    assert st_["coarse_interior"]["tiles"] >= 8 and st_["coarse_interior"]["unreached"] == 0
+    assert gc["hfrep"].activeVoxelCount() == gf["hfrep"].activeVoxelCount()
+    assert gc["hfrep"].leafCount() < gf["hfrep"].leafCount()
+    lo, hi = gf["hfrep"].evalActiveVoxelBoundingBox()
+    shape = tuple(int(hi[i] - lo[i] + 1) for i in range(3))
+    arr = {}
+    for mode, (g, _) in out.items():
+        for name in ("hfrep", "density"):
+            a = np.zeros(shape, np.float32)
+            g[name].copyToArray(a, tuple(int(x) for x in lo))
+            arr[mode, name] = a
+    assert np.array_equal(arr["coarse", "density"], arr["fine", "density"])
+    fine, coarse = arr["fine", "hfrep"] / h, arr["coarse", "hfrep"] / h
+    near = fine <= 10.0  # max_distance default: 10 voxels
+    assert np.array_equal(coarse[near], fine[near])
+    bound = 4 * np.sqrt(3) + 1
+    assert np.abs(coarse - fine).max() <= bound
+    idx = np.stack(np.meshgrid(*[np.arange(lo[i], hi[i] + 1) for i in range(3)], indexing="ij"), -1) * h
+    deep = fine > 10.0
+    assert deep.sum() > 10_000
+    assert np.abs(coarse[deep] - exact_r(idx[deep], r) / h).max() <= bound
+
+
+def exact_r(p: np.ndarray, r: float) -> np.ndarray:
+    return r - np.linalg.norm(p - C, axis=-1)
+
+
+def test_memory_estimate_per_stage_counts_the_coarse_interior(tmp_path, capsys, monkeypatch) -> None:
+    """config._check_memory keeps a per-stage estimate: with the coarse interior the hfrep stage
+    needs the band plus a shell, so a sphere at 2000^3 fits 32 GiB; the whole interior (2.1 G
+    voxels) does not (exit 2 naming the estimate)."""
+    import pipeline.config as config
+
+    monkeypatch.setattr(config, "_available_memory", lambda: 32 * 2**30)
+    text = ("name: big\ndomain: {bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 2000}\n"
+            "model: {sphere: {radius: 0.8}}\nstages:\n  - voxelise: {band: 3}\n  - hfrep: {interior: %s}\n")
+    cfg = tmp_path / "big.yaml"
+    est = {}
+    for mode in ("coarse", "fine"):
+        cfg.write_text(text % mode)
+        if mode == "coarse":
+            est[mode] = config.load_jobs(cfg)[0].memory_estimate
+        assert main(["validate", str(cfg)]) == (0 if mode == "coarse" else 2)
+    err = capsys.readouterr().err
+    assert "big.yaml:2 domain.resolution: this domain needs an estimated" in err
+    assert "interior distance of the hfrep stage" in err
+    assert set(est["coarse"]) == {"voxelise", "hfrep"}
+    assert est["coarse"]["voxelise"] < est["coarse"]["hfrep"] < 32 * 2**30

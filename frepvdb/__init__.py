@@ -26,7 +26,7 @@ from frepvdb.shape import POSITIONAL, SOURCE, Shape, make
 from pipeline.config import ConfigError, Domain, Job, jobs_from_root, load_jobs, make_domain, write_config
 from pipeline.nodes import REGISTRY
 
-__all__ = ["Shape", "ConfigError", "load", "voxelise", "run", "domain", *sorted(REGISTRY)]
+__all__ = ["Shape", "ConfigError", "load", "voxelise", "save", "run", "config", "domain", *sorted(REGISTRY)]
 
 
 def _node_function(kind: str) -> Callable[..., Shape]:
@@ -120,6 +120,31 @@ def voxelise(shape: Shape, bounds: Any, voxel_size: float | None = None, resolut
     ctx = JobContext(job, Path.cwd())
     stage.run(ctx, params)
     return ctx.grids["frep"]
+
+
+def save(shape: Shape, path: str | Path, bounds: Any, voxel_size: float | None = None,
+         resolution: int | None = None, band: float = 3.0, t: float = 0.0) -> Path:
+    """Voxelise ``shape`` over ``bounds`` and write ``path``: a .vdb (the ``frep`` grid), or a closed
+    triangle mesh of its zero set (.stl binary, .3mf, .ply, .obj; pipeline.meshout). Also a
+    method: ``shape.save("part.stl", bounds, voxel_size=0.01)``."""
+    from pipeline.meshout import WRITERS, zero_set
+
+    path = Path(path)
+    kind = path.suffix.lower().lstrip(".")
+    if kind != "vdb" and kind not in WRITERS:
+        raise ValueError(f"{path}: cannot write {path.suffix or 'a file without suffix'!r} (use .vdb, "
+                         f".{', .'.join(WRITERS)})")
+    grid = voxelise(shape, bounds, voxel_size, resolution, band=band, t=t)
+    if kind == "vdb":
+        from pipeline.vdbio import write_vdb
+
+        write_vdb(path, [grid], {"creator": "frepvdb"})
+    else:
+        WRITERS[kind](path, zero_set(grid))
+    return path
+
+
+Shape.save = save
 
 
 def _stage_params(model: type, name: str, raw: dict) -> Any:

@@ -62,9 +62,19 @@ class TriMesh:
         return n / np.where(length > 0, length, 1.0)
 
 
+#: the isovalue is moved this many voxels towards the inside: a sample exactly at the isovalue
+#: (a model zero at a voxel centre, common with round numbers) makes volumeToMesh emit distinct
+#: vertices at one point, which any tolerance-based welder (trimesh, slicers) then joins into
+#: edges of four triangles; 1e-3 voxel keeps every vertex resolvable in float32 and moves the
+#: surface by a thousandth of a voxel
+ISO_NUDGE = 1e-3
+
+
 def zero_set(grid: Any, isovalue: float = 0.0) -> TriMesh:
     """The isosurface of ``grid`` (world coordinates), triangulated, merged, oriented outward."""
-    pts, tris, quads = grid.convertToPolygons(isovalue=float(isovalue), adaptivity=0.0)
+    inside = -1.0 if str(grid.gridClass) == "level set" else 1.0  # level sets are negative inside
+    iso = float(isovalue) + inside * ISO_NUDGE * float(grid.transform.voxelSize()[0])
+    pts, tris, quads = grid.convertToPolygons(isovalue=iso, adaptivity=0.0)
     q = np.asarray(quads, np.int64).reshape(-1, 4)
     t = np.concatenate([np.asarray(tris, np.int64).reshape(-1, 3), q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
     mesh = _merge(np.asarray(pts, np.float64).reshape(-1, 3), t)

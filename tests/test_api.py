@@ -3,6 +3,10 @@ same compiled tapes, same written grids; operators, chaining, to_yaml round trip
 
 from __future__ import annotations
 
+import re
+import shlex
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -10,6 +14,7 @@ from hypothesis import strategies as st
 
 import frepvdb as fv
 from pipeline import tape as pt
+from pipeline.cli import main
 from pipeline.config import load_job
 from pipeline.grid import vdb
 from pipeline.nodes import REGISTRY
@@ -201,3 +206,47 @@ def test_mesh_shapes_keep_absolute_paths_in_yaml(tmp_path, monkeypatch) -> None:
     job = yaml_job(elsewhere, s.to_yaml())
     p = np.random.default_rng(3).uniform(-0.8, 0.8, (500, 3))
     np.testing.assert_array_equal(s.node(job.domain).evaluate(p), job.model.evaluate(p))
+
+
+# --- the docs' examples run (docs/python-api.md, docs/coming-from.md, README.md) --------------
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = [ROOT / "docs" / "python-api.md", ROOT / "docs" / "coming-from.md", ROOT / "README.md"]
+
+
+def doc_examples() -> list[tuple[str, str, str]]:
+    """(id, language, code) of every ```python / ```sh / ```yaml block that starts with
+    '# example: <name>' in the API docs and the README."""
+    out = []
+    for doc in DOCS:
+        for lang, code in re.findall(r"```(python|sh|yaml)\n(.*?)```", doc.read_text(), flags=re.S):
+            m = re.match(r"# example: (\w+)", code)
+            if m:
+                out.append((f"{doc.stem}:{m.group(1)}", lang, code))
+    return out
+
+
+def test_api_docs_have_examples() -> None:
+    ids = {i for i, _, _ in doc_examples()}
+    for want in ("python-api:operators", "python-api:voxelise_and_save", "coming-from:vdb_tool",
+                 "coming-from:fogleman", "coming-from:ntop_infill", "README:python"):
+        assert want in ids, want
+
+
+@pytest.mark.parametrize("name, lang, code", doc_examples(), ids=[i for i, _, _ in doc_examples()])
+def test_doc_example_runs(tmp_path, monkeypatch, name, lang, code) -> None:
+    import trimesh
+
+    monkeypatch.chdir(tmp_path)
+    trimesh.creation.icosphere(3, 0.5).export("part.stl")  # the docs' part.stl: a closed mesh
+    if lang == "python":
+        exec(compile(code, name, "exec"), {"__name__": "__doc_example__"})  # noqa: S102 - our own docs
+    elif lang == "sh":
+        lines = [ln for ln in code.splitlines() if ln.startswith("frepvdb ")]
+        assert lines
+        for line in lines:
+            assert main(shlex.split(line)[1:]) == 0, line
+    else:
+        (tmp_path / "job.yaml").write_text(code)
+        assert main(["run", "job.yaml", "--out", "outputs"]) == 0
+        assert list((tmp_path / "outputs").glob("*/manifest.json"))

@@ -117,3 +117,18 @@ def test_verify_catches_truncated_stl_and_3mf(tmp_path) -> None:
         p.write_bytes(p.read_bytes()[:-7])
         with pytest.raises(OSError, match="STL|3MF"):
             verify_outputs(folder, [e])
+
+
+def test_zeros_at_voxel_centres_still_give_a_closed_mesh(tmp_path) -> None:
+    """The torus's inner equator (radius 0.4) passes exactly through voxel centres at h = 0.02:
+    volumeToMesh at isovalue 0 gave coincident distinct vertices there, which trimesh's welding
+    turned into edges of four triangles; the nudged isovalue (meshout.ISO_NUDGE) does not."""
+    import frepvdb as fv
+
+    part = fv.torus(0.6, 0.2) - fv.box([-1, -0.05, -1], [1, 0.05, 1])
+    part.save(tmp_path / "cut.stl", [[-1, -1, -1], [1, 1, 1]], voxel_size=0.02)
+    m = trimesh.load(str(tmp_path / "cut.stl"))
+    assert m.is_watertight and m.is_winding_consistent
+    torus = 2 * math.pi**2 * 0.6 * 0.2**2
+    slab = 2 * 0.1 * math.pi * 0.2**2  # the tube crosses the 0.1-wide slab twice
+    assert m.volume == pytest.approx(torus - slab, rel=0.01)

@@ -44,16 +44,17 @@ import trimesh
 from numba import njit, prange
 from scipy.optimize import linprog
 
+from pipeline import bsp_minmax
 from pipeline.bsp_build import BIG_NODE, plane_ids, subtree_sizes
 from pipeline.bsp_build import build as _build_compiled
+from pipeline.bsp_minmax import GENERAL, LEAF, NEG_ONLY, POS_ONLY, SPECIAL_B, SPECIAL_C
 from pipeline.rfunctions import FAMILIES, SARDF_K
 
 FAMILY_CODE = {name: i for i, name in enumerate(FAMILIES)}  # min_max 0, r0 1, sardf 2
 SMALL_MESH = 50000  # triangles up to which the compiled plane selection searches twice as much
 R0_SCALE = 2.0  # magnitude control of r0/sardf, in mesh diagonals (see BSPField.magnitude_scale)
 
-# node modes of the compiled tree
-LEAF, POS_ONLY, NEG_ONLY, GENERAL, SPECIAL_B, SPECIAL_C = range(6)
+# node modes of the compiled tree: LEAF, POS_ONLY, NEG_ONLY, GENERAL, SPECIAL_B, SPECIAL_C (0..5)
 MODE_OPS = np.array([0, 1, 1, 4, 2, 2])  # binary R-functions per node mode
 
 
@@ -800,10 +801,29 @@ class BSPField:
     def evaluate(self, points: np.ndarray) -> np.ndarray:
         """Field values (N,) at points (N, d)."""
         p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, self.dim))
+        if self._short_circuit:  # exact: the same values to the bit (pipeline.bsp_minmax)
+            t = self.tree
+            return bsp_minmax.eval_points(p, t.normals, t.offsets, t.pos, t.neg, t.mode, self.stack_depth)
         return _eval_tree(p, *self._args())
 
     def bound(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rigorous (flo, fhi) over boxes [lo_i, hi_i] (B, d): the field on box i lies in it."""
         lo = np.ascontiguousarray(np.asarray(lo, dtype=np.float64).reshape(-1, self.dim))
         hi = np.ascontiguousarray(np.asarray(hi, dtype=np.float64).reshape(-1, self.dim))
+        if self._short_circuit:
+            t = self.tree
+            return bsp_minmax.bound_boxes(lo, hi, t.normals, t.offsets, t.pos, t.neg, t.mode, 1e-14 * self.scale,
+                                          self.stack_depth)
         return _bound_tree(lo, hi, *self._args(), 1e-14 * self.scale)
+
+    @property
+    def _short_circuit(self) -> bool:
+        """min_max in 3D has the exact short-circuit kernels; r0 and sardf depend on every node."""
+        return self.rfunc == "min_max" and self.dim == 3
+
+    @property
+    def stack_depth(self) -> int:
+        """Nodes on the tree's longest root-to-leaf path (stack room of the short-circuit kernels)."""
+        if getattr(self, "_depth", None) is None:
+            self._depth = int(bsp_minmax.tree_depth(self.tree.pos, self.tree.neg))
+        return self._depth

@@ -36,11 +36,14 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from pipeline.bsp_minmax import box_bound, point_value, tree_depth
+
 # --- opcodes ------------------------------------------------------------------------------------
 X, Y, Z, CONST, ADD, SUB, MUL, DIV, NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, MIN, MAX, R0AND, \
-    SARDFAND, COMPRESS = range(22)
+    SARDFAND, COMPRESS, BSPXY, BSP = range(24)
 NAMES = ["x", "y", "z", "const", "add", "sub", "mul", "div", "neg", "sqrt", "sqr", "abs", "exp", "log", "sin",
-         "cos", "powc", "min", "max", "r0and", "sardfand", "compress"]
+         "cos", "powc", "min", "max", "r0and", "sardfand", "compress", "bspxy", "bsp"]
+ORACLES = {BSPXY, BSP}  # never folded: their value needs the oracle arrays
 UNARY = {NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, COMPRESS}
 
 
@@ -57,6 +60,34 @@ class TapeBuilder:
         self.b: list[int] = []
         self.c: list[float] = []
         self.memo: dict[tuple, int] = {}
+        self.trees: list = []  # min_max BSP-trees of the mesh clauses, in order
+        self.tree_base: dict[int, int] = {}  # id(tree) -> index of its first node in the oracle arrays
+        self.nodes = 0
+
+    def bsp_field(self, x, y, z, tree) -> Sym:
+        """The min_max BSP-field of ``tree`` at traced coordinates: one oracle clause (BSP,
+        operands BSPXY(x, y) and z, constant = the node it starts from, the root at first)."""
+        if id(tree) not in self.tree_base:
+            self.tree_base[id(tree)] = self.nodes
+            self.trees.append(tree)
+            self.nodes += len(tree.mode)
+        root = float(self.tree_base[id(tree)] + len(tree.mode) - 1)
+        xs, ys, zs = (v if isinstance(v, Sym) else self.const(float(v)) for v in (x, y, z))
+        xy = self.emit(BSPXY, xs.pos, ys.pos, root)
+        return self.emit(BSP, xy.pos, zs.pos, root)
+
+    def oracle(self) -> Oracle:
+        """The BSP-trees of the traced mesh clauses as one set of arrays (child indices global)."""
+        if not self.trees:
+            return Oracle.empty()
+        parts = [(t, self.tree_base[id(t)]) for t in self.trees]
+        shift = [np.where(t.pos >= 0, t.pos + b, -1) for t, b in parts], [np.where(t.neg >= 0, t.neg + b, -1)
+                                                                           for t, b in parts]
+        depth = max(int(tree_depth(t.pos.astype(np.int64), t.neg.astype(np.int64))) for t, _ in parts)
+        return Oracle(np.ascontiguousarray(np.concatenate([t.normals for t, _ in parts]), np.float64),
+                      np.concatenate([t.offsets for t, _ in parts]).astype(np.float64),
+                      np.concatenate(shift[0]).astype(np.int64), np.concatenate(shift[1]).astype(np.int64),
+                      np.concatenate([t.mode for t, _ in parts]).astype(np.int64), depth)
 
     def emit(self, op: int, a: int = -1, b: int = -1, c: float = 0.0) -> Sym:
         if op == NEG and self.op[a] == NEG:  # -(-v) is v: unions -min(-a, -b) then chain into one min tree
@@ -94,7 +125,7 @@ class TapeBuilder:
 
     def _fold(self, op: int, a: int, b: int, c: float) -> float | None:
         args = [a] if op in UNARY else [a, b]
-        if op in (X, Y, Z, CONST) or any(i < 0 or self.op[i] != CONST for i in args):
+        if op in (X, Y, Z, CONST) or op in ORACLES or any(i < 0 or self.op[i] != CONST for i in args):
             return None
         va = self.c[a]
         vb = self.c[b] if op not in UNARY else 0.0
@@ -176,14 +207,42 @@ def binary(op: int, a, b) -> Sym:
 
 
 @dataclass
+class Oracle:
+    """The BSP-trees (pipeline.bsp_minmax layout) that the tape's mesh clauses evaluate, back to
+    back with global child indices; ``depth``: the longest root path (stack room)."""
+
+    normals: np.ndarray
+    offsets: np.ndarray
+    pos: np.ndarray
+    neg: np.ndarray
+    mode: np.ndarray
+    depth: int
+
+    @classmethod
+    def empty(cls) -> Oracle:
+        z = np.zeros(0, np.int64)
+        return cls(np.zeros((0, 3)), np.zeros(0), z, z, z, 0)
+
+    def arrays(self) -> tuple:
+        """The arguments the kernels take after the tape arrays."""
+        return (self.normals, self.offsets, self.pos, self.neg, self.mode), self.depth
+
+
+@dataclass
 class Tape:
-    """One tape (arrays as in the module docstring, a single tape starting at 0)."""
+    """One tape (arrays as in the module docstring, a single tape starting at 0) and the
+    oracle arrays of its mesh clauses."""
 
     op: np.ndarray
     a: np.ndarray
     b: np.ndarray
     c: np.ndarray
     res: int
+    oracle: Oracle = None
+
+    def __post_init__(self):
+        if self.oracle is None:
+            self.oracle = Oracle.empty()
 
     def __len__(self) -> int:
         return len(self.op)
@@ -209,7 +268,7 @@ def compile_model(model, t: float = 0.0) -> Tape | None:
     full = (np.array(tb.op, np.int64), np.array(tb.a, np.int64), np.array(tb.b, np.int64),
             np.array(tb.c, np.float64))
     op, a, b, c, res = _compact(*full, out.pos)
-    return Tape(op, a, b, c, res)
+    return Tape(op, a, b, c, res, tb.oracle())
 
 
 def bound_with(tape: Tape, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -219,16 +278,16 @@ def bound_with(tape: Tape, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, 
     n = len(lo)
     one = np.zeros(1, np.int64)
     choff = np.arange(n, dtype=np.int64) * len(tape)
-    choices = np.zeros(n * len(tape), np.int8)
+    choices = np.zeros(n * len(tape), np.int32)
     return bound_boxes(lo, hi, np.zeros(n, np.int64), one, np.array([len(tape)]), np.array([tape.res]),
-                       tape.op, tape.a, tape.b, tape.c, max(len(tape), 1), choff, choices)
+                       tape.op, tape.a, tape.b, tape.c, *tape.oracle.arrays(), max(len(tape), 1), choff, choices)
 
 
 def evaluate_with(tape: Tape, points: np.ndarray) -> np.ndarray:
     """Values of one tape at points (N, 3)."""
     p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     return eval_points(p, np.zeros(1, np.int64), np.array([len(tape)]), np.array([tape.res]), tape.op, tape.a,
-                       tape.b, tape.c)
+                       tape.b, tape.c, *tape.oracle.arrays())
 
 
 def _compact(op, a, b, c, res):
@@ -325,7 +384,7 @@ def _apply(op, va, vb, c):
 
 
 @njit(cache=True)
-def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m):
+def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m, orc, sj, sv):
     """Clause-major: each clause runs over the m points of the batch (the dispatch on the
     opcode is paid once per clause, the inner loops are plain arithmetic)."""
     for k in range(n):
@@ -344,6 +403,14 @@ def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m):
             reg[k, :m] = ck
             continue
         ia, ib = a[s + k], b[s + k]
+        if o == BSP:  # the mesh oracle from its start node; coordinates: BSPXY's operands and z
+            xa, ya, st = a[s + ia], b[s + ia], np.int64(ck)
+            for v in range(m):
+                reg[k, v] = point_value(reg[xa, v], reg[ya, v], reg[ib, v], st, orc[0], orc[1], orc[2], orc[3],
+                                        orc[4], sj, sv)
+            continue
+        if o == BSPXY:
+            continue  # carries the operands only
         if o == ADD:
             for v in range(m):
                 reg[k, v] = reg[ia, v] + reg[ib, v]
@@ -375,7 +442,7 @@ def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m):
 
 
 @njit(parallel=True, cache=True)
-def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, maxlen):
+def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen):
     """Values (N, block, block, block) at the voxel centres of blocks, block n with tape
     ``tape_of[n]`` (index into start/length/res)."""
     n = origins.shape[0]
@@ -383,6 +450,8 @@ def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, max
     out = np.empty((n, block, block, block))
     for q in prange(n):
         reg = np.empty((max(maxlen, 1), m))
+        sj = np.empty((2, odepth + 2), np.int64)
+        sv = np.empty((2, odepth + 2))
         px = np.empty(m)
         py = np.empty(m)
         pz = np.empty(m)
@@ -395,7 +464,7 @@ def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, max
                     pz[v] = (origins[q, 2] + k) * h
                     v += 1
         tp = tape_of[q]
-        vals = _run_batch(op, a, b, c, start[tp], length[tp], res[tp], px, py, pz, reg, m)
+        vals = _run_batch(op, a, b, c, start[tp], length[tp], res[tp], px, py, pz, reg, m, orc, sj, sv)
         v = 0
         for i in range(block):
             for j in range(block):
@@ -406,7 +475,7 @@ def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, max
 
 
 @njit(parallel=True, cache=True)
-def eval_points(pts, start, length, res, op, a, b, c):
+def eval_points(pts, start, length, res, op, a, b, c, orc, odepth):
     """Values of tape 0 at points (N, 3), in batches of 64."""
     n = pts.shape[0]
     out = np.empty(n)
@@ -414,10 +483,12 @@ def eval_points(pts, start, length, res, op, a, b, c):
     nb = (n + 63) // 64
     for q in prange(nb):
         reg = np.empty((max(ln, 1), 64))
+        sj = np.empty((2, odepth + 2), np.int64)
+        sv = np.empty((2, odepth + 2))
         lo = q * 64
         m = min(64, n - lo)
         vals = _run_batch(op, a, b, c, start[0], ln, res[0], pts[lo:lo + m, 0].copy(), pts[lo:lo + m, 1].copy(),
-                          pts[lo:lo + m, 2].copy(), reg, m)
+                          pts[lo:lo + m, 2].copy(), reg, m, orc, sj, sv)
         out[lo:lo + m] = vals[:m]
     return out
 
@@ -552,9 +623,10 @@ def _pow_interval(lo, hi, p):
 
 
 @njit(parallel=True, cache=True)
-def bound_boxes(lo, hi, tape_of, start, length, res, op, a, b, c, maxlen, choff, choices):
+def bound_boxes(lo, hi, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen, choff, choices):
     """Interval (flo, fhi) of box q's tape over [lo_q, hi_q]; ``choices[choff[q] + k]`` receives
-    the decision of clause k of box q's tape (1/2: operand a/b decides the min/max, 0: not)."""
+    the decision of clause k of box q's tape (1/2: operand a/b decides the min/max, 0: not; for
+    a mesh clause 3 + the node the box starts from, when deeper than the clause's own)."""
     nbox = lo.shape[0]
     flo = np.empty(nbox)
     fhi = np.empty(nbox)
@@ -564,9 +636,11 @@ def bound_boxes(lo, hi, tape_of, start, length, res, op, a, b, c, maxlen, choff,
         rhi = np.empty(maxlen)
         tlo = np.empty(maxlen)
         thi = np.empty(maxlen)
+        sj = np.empty((3, odepth + 2), np.int64)
+        sv = np.empty((4, odepth + 2))
         for q in range(ch * per, min(nbox, (ch + 1) * per)):
             tp = tape_of[q]
-            _bound_one(lo[q], hi[q], start[tp], length[tp], op, a, b, c, rlo, rhi, choices, choff[q])
+            _bound_one(lo[q], hi[q], start[tp], length[tp], op, a, b, c, rlo, rhi, choices, choff[q], orc, sj, sv)
             flo[q] = rlo[res[tp]]
             fhi[q] = rhi[res[tp]]
             _relevance(op, a, start[tp], length[tp], res[tp], b, rlo, rhi, choices, choff[q], tlo, thi)
@@ -574,7 +648,7 @@ def bound_boxes(lo, hi, tape_of, start, length, res, op, a, b, c, maxlen, choff,
 
 
 @njit(cache=True)
-def _bound_one(lo, hi, s, ln, op, a, b, c, rlo, rhi, choices, ch0):
+def _bound_one(lo, hi, s, ln, op, a, b, c, rlo, rhi, choices, ch0, orc, sj, sv):
     for k in range(ln):
         o = op[s + k]
         if o == X:
@@ -585,6 +659,10 @@ def _bound_one(lo, hi, s, ln, op, a, b, c, rlo, rhi, choices, ch0):
             rlo[k], rhi[k] = lo[2], hi[2]
         elif o == CONST:
             rlo[k], rhi[k] = c[s + k], c[s + k]
+        elif o == BSP:
+            _bound_bsp(k, s, a, b, c, rlo, rhi, choices, ch0, orc, sj, sv)
+        elif o == BSPXY:
+            rlo[k], rhi[k] = 0.0, 0.0
         else:
             ia, ib = a[s + k], b[s + k]
             blo = rlo[ib] if ib >= 0 else 0.0
@@ -592,6 +670,25 @@ def _bound_one(lo, hi, s, ln, op, a, b, c, rlo, rhi, choices, ch0):
             vlo, vhi, chc = _interval(o, rlo[ia], rhi[ia], blo, bhi, c[s + k])
             rlo[k], rhi[k] = _down(vlo), _upv(vhi)
             choices[ch0 + k] = chc
+
+
+@njit(cache=True)
+def _bound_bsp(k, s, a, b, c, rlo, rhi, choices, ch0, orc, sj, sv):
+    """Mesh clause k over the box of its coordinate intervals; records a deeper start node."""
+    ia, ib = a[s + k], b[s + k]
+    xa, ya = a[s + ia], b[s + ia]
+    lo0, hi0, lo1, hi1, lo2, hi2 = rlo[xa], rhi[xa], rlo[ya], rhi[ya], rlo[ib], rhi[ib]
+    st = np.int64(c[s + k])
+    if not (math.isfinite(lo0) and math.isfinite(hi0) and math.isfinite(lo1) and math.isfinite(hi1)
+            and math.isfinite(lo2) and math.isfinite(hi2)):
+        rlo[k], rhi[k] = -math.inf, math.inf
+        return
+    pad = 1e-14 * (1.0 + max(max(abs(lo0), abs(hi0)), max(max(abs(lo1), abs(hi1)), max(abs(lo2), abs(hi2)))))
+    flo, fhi, nst = box_bound(lo0, lo1, lo2, hi0, hi1, hi2, st, orc[0], orc[1], orc[2], orc[3], orc[4], pad, sj,
+                              sv)
+    rlo[k], rhi[k] = _down(flo), _upv(fhi)
+    if nst != st:
+        choices[ch0 + k] = 3 + nst
 
 
 @njit(cache=True)
@@ -718,7 +815,7 @@ def _spec_into(op, a, b, c, s, ln, res, choices, ch0, alias, live, newpos, oop, 
             oop[o0 + m] = op[s + k]
             oa[o0 + m] = newpos[alias[a[s + k]]] if a[s + k] >= 0 else -1
             ob[o0 + m] = newpos[alias[b[s + k]]] if b[s + k] >= 0 else -1
-            oc[o0 + m] = c[s + k]
+            oc[o0 + m] = c[s + k] if op[s + k] != BSP or choices[ch0 + k] < 3 else float(choices[ch0 + k] - 3)
             m += 1
     return m, newpos[alias[res]]
 

@@ -33,7 +33,7 @@ from numba import njit
 
 from pipeline.grid import LEAF, LEAF_LOG2, BlockGrid, pack_keys
 from pipeline.nodes import Node
-from pipeline.tape import Tape, bound_boxes, compile_model, eval_blocks, specialise
+from pipeline.tape import Oracle, Tape, bound_boxes, compile_model, eval_blocks, specialise
 
 BOUND_CHUNK = 200_000  # boxes per affine call at most (memory ~ 100 bytes x ops x boxes)
 EVAL_CHUNK = 1 << 20  # points per evaluation call at most
@@ -83,15 +83,20 @@ class TapePool:
     a: np.ndarray
     b: np.ndarray
     c: np.ndarray
+    oracle: Oracle  # the mesh clauses' trees, shared by every tape of the pool
 
     @classmethod
     def single(cls, tape: Tape) -> TapePool:
         one = np.zeros(1, np.int64)
         return cls(one, np.array([len(tape)], np.int64), np.array([tape.res], np.int64), tape.op, tape.a,
-                   tape.b, tape.c)
+                   tape.b, tape.c, tape.oracle)
 
     def arrays(self) -> tuple:
         return self.start, self.length, self.res, self.op, self.a, self.b, self.c
+
+    def with_arrays(self, arrays: tuple) -> TapePool:
+        """A pool of new tapes (specialise's result) over the same oracle."""
+        return TapePool(*arrays, self.oracle)
 
 
 def enumerate_cells_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: float, band: float, block: int,
@@ -120,7 +125,7 @@ def enumerate_cells_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: floa
         # is decided on the undilated box: much shorter tapes than the band-dilated one gives
         k_of = tape_of[keep]
         _, _, (choff, choices) = _bound_level(pool, k_of, (lo[keep] - 0.5) * h, (hi[keep] + 0.5) * h)
-        pool = TapePool(*specialise(np.arange(len(keep), dtype=np.int64), k_of, *pool.arrays(), choff, choices))
+        pool = pool.with_arrays(specialise(np.arange(len(keep), dtype=np.int64), k_of, *pool.arrays(), choff, choices))
         st["levels"][-1]["mean_tape"] = round(float(pool.length.mean()), 2) if len(keep) else 0.0
         amb = cells[keep]
         if size <= block:
@@ -136,11 +141,11 @@ def _bound_level(pool: TapePool, tape_of: np.ndarray, blo: np.ndarray, bhi: np.n
     """Interval bounds of each box with its tape, and the min/max decisions (offsets, choices)."""
     lens = pool.length[tape_of]
     choff = np.concatenate([[0], np.cumsum(lens)[:-1]]).astype(np.int64)
-    choices = np.zeros(int(lens.sum()), np.int8)
+    choices = np.zeros(int(lens.sum()), np.int32)  # int32: a mesh clause records its start node
     if len(tape_of) == 0:
         return np.zeros(0), np.zeros(0), (choff, choices)
     flo, fhi = bound_boxes(np.ascontiguousarray(blo, np.float64), np.ascontiguousarray(bhi, np.float64), tape_of,
-                           *pool.arrays(), int(lens.max()), choff, choices)
+                           *pool.arrays(), *pool.oracle.arrays(), int(lens.max()), choff, choices)
     return flo, fhi, (choff, choices)
 
 
@@ -334,7 +339,7 @@ def sample_blocks(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, ban
         levels, pool = enumerate_cells_tape(tape, imin, imax, h, band, block, progress, root_size, clip)
         blocks = levels.blocks
         vals = eval_blocks(blocks, block, float(h), np.arange(len(blocks), dtype=np.int64), *pool.arrays(),
-                           int(pool.length.max()) if len(blocks) else 1)
+                           *pool.oracle.arrays(), int(pool.length.max()) if len(blocks) else 1)
     else:
         levels = enumerate_cells(model, imin, imax, h, band, block, t, progress=progress, root_size=root_size,
                                  clip=clip)

@@ -80,13 +80,14 @@ def check_tape(job, seed: int = 0) -> pt.Tape:
 def specialised(tp: pt.Tape, lo: np.ndarray, hi: np.ndarray) -> pt.Tape:
     """The tape of one box, through the same kernels the voxeliser uses."""
     n = len(tp)
-    choices = np.zeros(n, np.int8)
+    choices = np.zeros(n, np.int32)
     pt.bound_boxes(lo[None], hi[None], np.zeros(1, np.int64), np.zeros(1, np.int64), np.array([n]),
-                  np.array([tp.res]), tp.op, tp.a, tp.b, tp.c, n, np.zeros(1, np.int64), choices)
+                  np.array([tp.res]), tp.op, tp.a, tp.b, tp.c, *tp.oracle.arrays(), n, np.zeros(1, np.int64),
+                  choices)
     s, ln, r, op, a, b, c = pt.specialise(np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
                                          np.array([n]), np.array([tp.res]), tp.op, tp.a, tp.b, tp.c,
                                          np.zeros(1, np.int64), choices)
-    return pt.Tape(op, a, b, c, int(r[0]))
+    return pt.Tape(op, a, b, c, int(r[0]), tp.oracle)
 
 
 @pytest.mark.parametrize("name", sorted(NODES))
@@ -136,17 +137,52 @@ def test_random_trees_conform(tmp_path_factory, model, seed) -> None:
     check_tape(job_of(tmp_path_factory.mktemp("t"), model), seed)
 
 
-def test_min_max_mesh_lowers_to_planes_and_prunes(tmp_path) -> None:
-    """A min_max BSP-field becomes tape clauses (planes, min, max): the tape equals the BSP
-    kernel, and a small cell keeps only a few of its planes (measured: 14 of the 112 planes of a
-    320-face icosphere in a 0.06 cell on its surface)."""
+def _ico(tmp_path, name="ico.off", k=2, r=0.7):
     import trimesh
 
-    path = tmp_path / "ico.off"
-    trimesh.creation.icosphere(2, 0.7).export(str(path))
+    path = tmp_path / name
+    trimesh.creation.icosphere(k, r).export(str(path))
+    return path
+
+
+def test_min_max_mesh_is_one_oracle_clause_specialised_to_a_start_node(tmp_path) -> None:
+    """A min_max BSP-field is one tape clause (pipeline.bsp_minmax's short-circuit kernels): the
+    tape equals the BSP kernel to the bit, bounds hold, and a small cell on the surface starts
+    from a node below the root (its voxels skip the root path and
+    the subtrees the cell's bounds exclude). A torus: its tree's root is a chain of POS_ONLY nodes
+    (min of planes), which a cell skips down to the first plane near it."""
+    import trimesh
+
+    from pipeline.bsp import _eval_tree, _subtree_sizes
+
+    path = tmp_path / "torus.off"
+    trimesh.creation.torus(0.5, 0.2, major_sections=24, minor_sections=12).export(str(path))
     job = job_of(tmp_path, f"mesh: {{path: {path}, rfunc: min_max}}")
     tp = check_tape(job)
+    assert tp.counts().get("bsp") == 1 and len(tp) <= 6, tp.counts()
+    t = next(iter(job.model.walk())).impl.tree
+    p = np.random.default_rng(3).uniform(-0.9, 0.9, (5000, 3))
+    full = _eval_tree(p, t.normals, t.offsets, t.pos, t.neg, t.mode, 0, 0.0, 1.0)  # every node, no shortcut
+    np.testing.assert_array_equal(pt.evaluate_with(tp, p), full)
     c = np.array([0.7, 0.0, 0.0])
     sub = specialised(tp, c - 0.03, c + 0.03)
-    planes = [np.count_nonzero(t.op == pt.MUL) for t in (sub, tp)]  # three products per plane
-    assert planes[0] < planes[1] / 5, planes
+    start = int(sub.c[sub.op == pt.BSP][0])
+    sizes = _subtree_sizes(tp.oracle.pos, tp.oracle.neg)
+    assert sizes[start] < len(sizes), (sizes[start], len(sizes))
+    q = np.random.default_rng(4).uniform(c - 0.03, c + 0.03, (500, 3))
+    np.testing.assert_array_equal(pt.evaluate_with(sub, q), pt.evaluate_with(tp, q))
+
+
+def test_meshes_in_csg_with_transforms_conform(tmp_path) -> None:
+    """Two min_max meshes (one rotated, scaled, moved) with primitives: one tape holding both
+    trees, equal to the node-by-node evaluation, bounds and specialisation exact."""
+    a, b = _ico(tmp_path, "a.off", 2, 0.6), _ico(tmp_path, "b.off", 1, 0.4)
+    moved = (f"{{rotate: {{axis: [1, 1, 0], angle: 35, of: {{scale: {{by: [1.4, 0.8, 1], of: "
+             f"{{translate: {{by: [0.5, 0, 0], of: {{mesh: {{path: {b}, rfunc: min_max}}}}}}}}}}}}}}}}")
+    model = (f"difference: {{of: [{{union: {{of: [{{mesh: {{path: {a}, rfunc: min_max}}}}, {moved}], "
+             f"rfunc: min_max}}}}, {{cylinder: {{radius: 0.15, height: 3}}}}], rfunc: min_max}}")
+    job = job_of(tmp_path, model)
+    tp = check_tape(job)
+    assert tp.counts().get("bsp") == 2
+    trees = [n.impl.tree for n in job.model.walk() if type(n).__name__ == "Mesh"]
+    assert len(tp.oracle.mode) == sum(len(t.mode) for t in trees)

@@ -97,39 +97,14 @@ class Mesh(Node):
         return self.impl.evaluate(pts).reshape(shape)
 
     def _lower(self, x, y, z):
-        """The BSP-field as tape clauses (section 3.3.2's formula node by node), for ``min_max``:
-        then every node is a min or max that the per-cell specialisation can prune exactly, so a
-        cell keeps only the planes near it. r0 and sardf depend on every node everywhere (no exact
-        pruning), and the BSP kernel evaluates them faster than a tape of the same formula, so
-        they stay an oracle; the ADF field likewise."""
-        from pipeline import ops
-        from pipeline.bsp import GENERAL, LEAF, NEG_ONLY, POS_ONLY, SPECIAL_B
-
+        """The BSP-field as one tape clause for ``min_max``: an oracle the tape's kernels run with
+        the exact short-circuit rules of pipeline.bsp_minmax, which each cell of the voxelise
+        descent specialises to the node its box starts from. r0 and sardf depend on every node
+        everywhere (no exact pruning), so they stay a node-by-node oracle; the ADF field likewise."""
         if self.params.method != "bsp" or self.params.rfunc != "min_max":
             raise NotTraceable("mesh fields other than min_max BSP-fields are evaluated by their kernel")
-        tree = self.impl.tree
-        fam = "min_max"
-        vals: list = []
-        for j in range(len(tree.mode)):
-            n, off = tree.normals[j], float(tree.offsets[j])
-            fa = x * float(n[0]) + y * float(n[1]) + z * float(n[2]) + off
-            fb = vals[tree.pos[j]] if tree.pos[j] >= 0 else None
-            fc = vals[tree.neg[j]] if tree.neg[j] >= 0 else None
-            m = tree.mode[j]
-            if m == LEAF:
-                v = fa
-            elif m == POS_ONLY:
-                v = ops.r_and(fa, fb, fam)
-            elif m == NEG_ONLY:
-                v = ops.r_or(fa, fc, fam)
-            elif m == GENERAL:
-                v = ops.r_or(ops.r_and(ops.r_or(fa, fc, fam), fb, fam), ops.r_and(-fa, fc, fam), fam)
-            elif m == SPECIAL_B:
-                v = ops.r_and(ops.r_or(fa, fc, fam), fb, fam)
-            else:
-                v = ops.r_and(ops.r_or(-fa, fb, fam), fc, fam)
-            vals.append(v)
-        return vals[-1]
+        traced = next(v for v in (x, y, z) if isinstance(v, Sym))
+        return traced.tb.bsp_field(x, y, z, self.impl.tree)
 
     def describe(self) -> dict:
         """Manifest entry: the mesh checks and the BSP-tree counts (Table 1 of bsp-fields)."""

@@ -381,7 +381,8 @@ def run_e2e(folder: Path, n: int, stage_limit: float = 900.0, interval: float = 
         stages.append({"stage": s, "seconds": secs, "peak_rss_mib": peaks.get(s, 0) / 2**20,
                        "finished": state["done"] is not None or i + 1 < len(order)})
     return {"n": n, "voxel_size": 2.4 / n, "stages": stages, "failure": failure, "wall_s": end - starts["load"],
-            "done": state["done"], "peak_rss_mib": max(peaks.values(), default=0) / 2**20}
+            "done": state["done"], "peak_rss_mib": max(peaks.values(), default=0) / 2**20,
+            "load": os.getloadavg()}
 
 
 def e2e_table(rows: list[Row]) -> str:
@@ -397,7 +398,31 @@ def e2e_table(rows: list[Row]) -> str:
             grids = f"frep {g.get('frep', 0):,} / surface {g.get('surface', 0):,} active voxels"
         elif r["failure"]:
             grids = r["failure"]
-        out.append(f"| {r['n']} | **whole job** | {r['wall_s']:.2f} | {r['peak_rss_mib']:,.0f} | {grids} |")
+        load = ", ".join(f"{x:.2f}" for x in r.get("load", ()))
+        out.append(f"| {r['n']} | **whole job** | {r['wall_s']:.2f} | {r['peak_rss_mib']:,.0f} | {grids};"
+                   f" load average at the end {load} |")
+    return "\n".join(out)
+
+
+def growth_table(rows: list[Row], bound: float = 4.5) -> str:
+    """Per doubling of the resolution: each stage's time and peak RSS ratio, and whether both
+    stay within ``bound`` (x4 is the surface, x8 the volume) and the stage within 3x voxelise."""
+    out = ["| n -> 2n | stage | time ratio | peak RSS ratio | within x4.5 | stage / voxelise time (2n) |",
+           "|---|---|---|---|---|---|"]
+    by_n = {r["n"]: r for r in rows if r["done"]}
+    for n in sorted(by_n):
+        if 2 * n not in by_n:
+            continue
+        a = {s["stage"]: s for s in by_n[n]["stages"]}
+        b = {s["stage"]: s for s in by_n[2 * n]["stages"]}
+        vox = b.get("voxelise", {}).get("seconds") or float("nan")
+        for st in b:
+            if st not in a or st == "load":
+                continue
+            t = b[st]["seconds"] / max(a[st]["seconds"], 1e-9)
+            m = b[st]["peak_rss_mib"] / max(a[st]["peak_rss_mib"], 1e-9)
+            ok = "yes" if t <= bound and m <= bound else "**no**"
+            out.append(f"| {n} -> {2 * n} | {st} | {t:.2f} | {m:.2f} | {ok} | {b[st]['seconds'] / vox:.2f} |")
     return "\n".join(out)
 
 
@@ -436,6 +461,7 @@ def sections(args: argparse.Namespace, folder: Path, emit: Callable[[str], None]
             emit(f"<!-- {n}^3 done: {rows[-1]['failure'] or 'ok'} -->")
         results["e2e"] = rows
         emit(e2e_table(rows) + "\n")
+        emit(growth_table(rows) + "\n")
     emit(f"Finished {conditions()}.")
     return results
 

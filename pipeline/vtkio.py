@@ -310,17 +310,23 @@ def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 def triangle_labels(
     component: Any, points: np.ndarray, triangles: np.ndarray, voxel_size: float
 ) -> np.ndarray:
-    """Label per triangle: the nearest non-zero ``component`` voxel among the 8 around its centroid."""
+    """Label per triangle: the nearest non-zero ``component`` voxel among the 8 around its centroid.
+
+    The nearest of the 8 is the rounded centroid: where it holds a label that is the answer
+    (one sample per triangle); only the other triangles read all 8 corners."""
     centroid = points[triangles].astype(np.float64).mean(axis=1) / voxel_size
-    base = np.floor(centroid).astype(np.int64)
-    ijk = (base[:, None, :] + _CORNERS[None]).reshape(-1, 3)
-    values = sample_values(component, ijk)
-    labels = np.rint(values).astype(np.int32).reshape(-1, 8)
-    dist = np.linalg.norm(ijk.reshape(-1, 8, 3) - centroid[:, None, :], axis=2)
-    dist[labels <= 0] = np.inf
-    best = np.argmin(dist, axis=1)
-    picked = labels[np.arange(len(labels)), best]
-    return np.where(np.isfinite(dist.min(axis=1)), picked, 0).astype(np.int32)
+    out = np.rint(sample_values(component, np.rint(centroid).astype(np.int64))).astype(np.int32)
+    todo = np.flatnonzero(out <= 0)
+    if len(todo):
+        c = centroid[todo]
+        base = np.floor(c).astype(np.int64)
+        ijk = (base[:, None, :] + _CORNERS[None]).reshape(-1, 3)
+        labels = np.rint(sample_values(component, ijk)).astype(np.int32).reshape(-1, 8)
+        dist = np.linalg.norm(ijk.reshape(-1, 8, 3) - c[:, None, :], axis=2)
+        dist[labels <= 0] = np.inf
+        picked = labels[np.arange(len(labels)), np.argmin(dist, axis=1)]
+        out[todo] = np.where(np.isfinite(dist.min(axis=1)), picked, 0)
+    return np.maximum(out, 0).astype(np.int32)
 
 
 def weld(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

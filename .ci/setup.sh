@@ -63,7 +63,7 @@ setup: .venv has NumPy $VENV_NUMPY but the system's OpenVDB module is built agai
 MSG
   exit 1
 fi
-.venv/bin/python -c "import numpy, pipeline
+.venv/bin/python -c "import numpy, pipeline, cc3d  # cc3d: connected-components-3d from .[dev] (bench anchor)
 try:
     import openvdb as vdb
 except ImportError:

@@ -228,10 +228,12 @@ def surface_grid(grids: dict[str, Any]) -> tuple[str, Any]:
 
 
 def write_meshes(out_dir: Path, name: str, grids: dict[str, Any], kinds: list[str], voxel_size: float,
-                 per_component: bool = False) -> tuple[list[dict], list[str]]:
+                 per_component: bool = False, progress: Callable[..., None] | None = None
+                 ) -> tuple[list[dict], list[str]]:
     """``<name>_mesh.<kind>`` for each kind (and ``<name>_mesh_<k>.<kind>`` per component with
     ``per_component``, when a ``component`` grid exists; 3MF then holds one object per
-    component). Returns (manifest entries, warnings)."""
+    component). Returns (manifest entries, warnings); ``progress`` gets the files done of all."""
+    from pipeline.progress import tick
     from pipeline.vtkio import triangle_labels
 
     source, grid = surface_grid(grids)
@@ -246,13 +248,17 @@ def write_meshes(out_dir: Path, name: str, grids: dict[str, Any], kinds: list[st
         parts = split_components(mesh, labels)
     elif per_component:
         warnings.append("mesh_per_component: no component grid (add the components stage); one mesh written")
-    entries = []
-    for kind in dict.fromkeys(kinds):
+    entries: list[dict] = []
+    kinds = list(dict.fromkeys(kinds))
+    total = len(kinds) + len(parts) * sum(k != "3mf" for k in kinds)
+    for kind in kinds:
         path = out_dir / f"{name}_mesh.{kind}"
         entries.append(write_3mf(path, parts or mesh) if kind == "3mf" else WRITERS[kind](path, mesh))
+        tick(progress, f"wrote {path.name}", len(entries), total)
         if kind != "3mf":
             for k, part in parts.items():
                 entries.append({**WRITERS[kind](out_dir / f"{name}_mesh_{k}.{kind}", part), "component": k})
+                tick(progress, f"wrote {entries[-1]['path']}", len(entries), total)
     for e in entries:
         e["source"] = source
     return entries, warnings
@@ -261,7 +267,8 @@ def write_meshes(out_dir: Path, name: str, grids: dict[str, Any], kinds: list[st
 def export_meshes(ctx: Any, grids: dict[str, Any], kinds: list[str], per_component: bool) -> list[str]:
     """The export stage's ``mesh:`` option: write the meshes, register them in the manifest (so
     pipeline.outputs verifies them), pass on the warnings; returns the file names."""
-    entries, warnings = write_meshes(ctx.out_dir, ctx.job.name, grids, kinds, ctx.voxel_size, per_component)
+    entries, warnings = write_meshes(ctx.out_dir, ctx.job.name, grids, kinds, ctx.voxel_size, per_component,
+                                     progress=ctx.progress)
     for e in entries:
         ctx.add_output(ctx.out_dir / e["path"], e["kind"], **{k: v for k, v in e.items() if k not in ("path", "kind")})
     ctx.warnings.extend(warnings)

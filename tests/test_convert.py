@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
 
 import numpy as np
 import pytest
@@ -37,22 +38,27 @@ def round_trip(tmp_path, mesh_path, *opts: str, grid_expect: tuple = ("frep",)) 
 
 
 def test_mesh_to_vdb_to_mesh_keeps_the_volume(tmp_path, torus) -> None:
+    """5k faces at 64 voxels across (the 256^3 check is the slow test below): the frep grid and the
+    --surface level set both mesh back closed with the mesh's volume within 1%."""
     path, volume = torus
-    m = round_trip(tmp_path, path, "--resolution", "64", "--band", "2")
-    assert m.volume == pytest.approx(volume, rel=0.01)
+    m = round_trip(tmp_path, path, "--resolution", "64", "--band", "2", "--surface",
+                   grid_expect=("frep", "surface"))
+    assert m.volume == pytest.approx(volume, rel=0.01)  # meshed from 'surface' (the default)
     g = vdb.read(str(tmp_path / "part.vdb"), "frep")
-    assert g.transform.voxelSize()[0] == pytest.approx(1.7 / 64)  # the torus is 1.7 wide
+    h = 1.7 / 64  # the torus is 1.7 wide
+    assert g.transform.voxelSize()[0] == pytest.approx(h)
     lo, hi = g.evalActiveVoxelBoundingBox()
-    assert all(lo[i] * 1.7 / 64 < -0.85 - 1.5 * 1.7 / 64 for i in (0, 1))  # the padded domain holds the band
-
-
-def test_surface_level_set_and_voxel_size(tmp_path, torus) -> None:
-    path, volume = torus
-    m = round_trip(tmp_path, path, "--voxel-size", "0.03", "--surface", grid_expect=("frep", "surface"))
-    g = vdb.read(str(tmp_path / "part.vdb"), "surface")
-    assert str(g.gridClass) == "level set"
-    assert g.getConstAccessor().getValue((0, round(0.6 / 0.03), 0)) < 0  # inside the tube: negative
-    assert m.volume == pytest.approx(volume, rel=0.01)  # meshed from 'surface'
+    assert all(lo[i] * h < -0.85 - 1.5 * h for i in (0, 1))  # the padded domain holds the band
+    s = vdb.read(str(tmp_path / "part.vdb"), "surface")
+    assert str(s.gridClass) == "level set"
+    assert s.getConstAccessor().getValue((0, round(0.6 / h), 0)) < 0  # inside the tube: negative
+    assert main(["convert", str(tmp_path / "part.vdb"), str(tmp_path / "frep.3mf"), "--grid", "frep"]) == 0
+    with zipfile.ZipFile(tmp_path / "frep.3mf") as z:
+        assert "3D/3dmodel.model" in z.namelist()
+    assert main(["convert", str(tmp_path / "part.vdb"), str(tmp_path / "frep.ply"), "--grid", "frep"]) == 0
+    f = trimesh.load(str(tmp_path / "frep.ply"))
+    assert f.is_watertight and f.volume == pytest.approx(volume, rel=0.01)
+    assert main(["convert", str(tmp_path / "part.vdb"), str(tmp_path / "x.stl"), "--grid", "nope"]) == 2
 
 
 def test_convert_config_is_a_job_like_a_config_would_be(tmp_path) -> None:
@@ -76,7 +82,7 @@ def test_convert_config_is_a_job_like_a_config_would_be(tmp_path) -> None:
 @pytest.mark.skipif(not os.environ.get("FREPVDB_SLOW"), reason="256^3 round trip (~1-2 min): set FREPVDB_SLOW=1")
 def test_round_trip_5k_faces_at_256(tmp_path, torus) -> None:
     path, volume = torus
-    m = round_trip(tmp_path, path, "--resolution", "256")
+    m = round_trip(tmp_path, path, "--resolution", "256", "--surface", grid_expect=("frep", "surface"))
     assert m.volume == pytest.approx(volume, rel=0.01)
 
 

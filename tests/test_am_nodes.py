@@ -99,6 +99,8 @@ def test_d_without_d_from_is_an_input_error(tmp_path) -> None:
         job_of(tmp_path, 'tpms: {type: gyroid, cell: 0.5, thickness: "0.1 * d"}')
     with pytest.raises(ConfigError, match=r"lattice: give exactly one of struts"):
         job_of(tmp_path, "lattice: {radius: 0.1}")
+    with pytest.raises(ConfigError, match=r"model.lattice: 1,000,000 cells of 0.01 .* use a larger cell"):
+        job_of(tmp_path, "lattice: {pattern: cubic, cell: 0.01, bounds: [[0, 0, 0], [1, 1, 1]], radius: 0.001}")
 
 
 def thickness_formula(p: np.ndarray) -> float:

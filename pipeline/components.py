@@ -284,14 +284,41 @@ def _child_corner_values(cache: _CornerCache, parents: np.ndarray, pvals: np.nda
     reused and only the 19 new lattice points per parent are evaluated."""
     if len(parents) == 0:
         return np.zeros((0, 8))
-    lat = np.empty((len(parents), 27))
-    lat[:, _EVEN27] = pvals[:, _FROM_PARENT]
-    pts = (2 * parents[:, None, :] + _LAT27[None, ~_EVEN27]) * scale
     # points shared by neighbouring parents are evaluated once per parent: with the compiled
     # model that is cheaper than finding the duplicates (a sort of every key)
-    fv = cache.evaluate(cache.origin + pts.reshape(-1, 3) * cache.step)
-    lat[:, ~_EVEN27] = fv.reshape(len(parents), -1)
-    return lat[:, _CHILD_IDX].reshape(-1, 8)
+    pts = _new_lattice_points(np.ascontiguousarray(parents, dtype=np.int64), _LAT27[~_EVEN27], int(scale),
+                              np.asarray(cache.origin, np.float64), float(cache.step))
+    fv = cache.evaluate(pts)
+    return _assemble_children(np.ascontiguousarray(pvals, dtype=np.float64), fv.reshape(len(parents), -1),
+                              _FROM_PARENT, np.flatnonzero(_EVEN27), np.flatnonzero(~_EVEN27), _CHILD_IDX)
+
+
+@numba.njit(cache=True)
+def _new_lattice_points(parents, offsets, scale, origin, step):
+    """World points of the 19 lattice points per parent that are not parent corners."""
+    out = np.empty((parents.shape[0] * offsets.shape[0], 3))
+    for p in range(parents.shape[0]):
+        for o in range(offsets.shape[0]):
+            for a in range(3):
+                out[p * offsets.shape[0] + o, a] = origin[a] + ((2 * parents[p, a] + offsets[o, a]) * scale) * step
+    return out
+
+
+@numba.njit(cache=True)
+def _assemble_children(pvals, new, from_parent, even, odd, child_idx):
+    """(P*8, 8) child corner values from the parent corners and the new lattice values."""
+    n = pvals.shape[0]
+    out = np.empty((n * 8, 8))
+    lat = np.empty(27)
+    for p in range(n):
+        for e in range(even.shape[0]):
+            lat[even[e]] = pvals[p, from_parent[e]]
+        for o in range(odd.shape[0]):
+            lat[odd[o]] = new[p, o]
+        for c in range(8):
+            for k in range(8):
+                out[p * 8 + c, k] = lat[child_idx[c, k]]
+    return out
 
 
 def _affine(model: Node, lo: np.ndarray, hi: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -603,8 +630,8 @@ def coarsest_same_count(comp: Components) -> tuple[Components, dict[int, int]]:
             break
         lo, hi = comp.tree.boxes()
         rows = cand.tree.locate(0.5 * (lo + hi))  # a cell's centre lies in itself or its ancestor
-        m = dict(zip(comp.labels.tolist(), cand.labels[rows].tolist(), strict=True))
-        best, mapping = cand, m
+        pairs = np.unique(np.stack([comp.labels, cand.labels[rows]], axis=1), axis=0)
+        best, mapping = cand, {int(a): int(b) for a, b in pairs}
     return best, mapping
 
 

@@ -49,6 +49,7 @@ from pipeline.bsp_build import BIG_NODE, plane_ids, subtree_sizes
 from pipeline.bsp_build import build as _build_compiled
 from pipeline.bsp_minmax import GENERAL, LEAF, NEG_ONLY, POS_ONLY, SPECIAL_B, SPECIAL_C
 from pipeline.rfunctions import FAMILIES, SARDF_K
+from pipeline.small_lp import max_margin
 
 FAMILY_CODE = {name: i for i, name in enumerate(FAMILIES)}  # min_max 0, r0 1, sardf 2
 SMALL_MESH = 50000  # triangles up to which the compiled plane selection searches twice as much
@@ -647,13 +648,20 @@ def _regions(tree: Tree, j: int, cache: dict, cap: int):
 
 
 def _has_interior(tree: Tree, cons: list[tuple[int, float]], tol: float) -> bool:
-    """Does the intersection of the halfspaces have an interior point (Chebyshev-type LP)?"""
+    """Does the intersection of the halfspaces have an interior point (Chebyshev-type LP)?
+
+    In 3D :func:`pipeline.small_lp.max_margin` solves it; scipy's HiGHS is asked only when that
+    did not finish or its optimum lies within 100 tol of the threshold (HiGHS's own tolerances
+    then decide, as before)."""
     d = tree.normals.shape[1]
     idx = np.array([c[0] for c in cons])
     sg = np.array([c[1] for c in cons])
     a = -(sg[:, None] * tree.normals[idx])
-    a_ub = np.concatenate([a, np.ones((len(cons), 1))], axis=1)  # -sg(n.x+c) + t <= 0
     b_ub = sg * tree.offsets[idx]
+    t = max_margin(np.ascontiguousarray(a), np.ascontiguousarray(b_ub)) if d == 3 else np.nan
+    if abs(t - tol) > 100.0 * tol:  # decided (NaN compares False): the compiled simplex, ~15 us
+        return bool(t > tol)
+    a_ub = np.concatenate([a, np.ones((len(cons), 1))], axis=1)  # -sg(n.x+c) + t <= 0
     cost = np.zeros(d + 1)
     cost[-1] = -1.0
     bounds = [(None, None)] * d + [(None, 1.0)]

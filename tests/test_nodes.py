@@ -204,6 +204,14 @@ def random_node(kind: str, rng: np.random.Generator):
         "twist": dict(rate=rng.uniform(-120, 120), axis=axis, of=leaf()),
         "taper": dict(axis=axis, range=(-1.0, 1.0), scale=tuple(rng.uniform(0.3, 1.5, 2)), of=leaf()),
         "bend": dict(rate=rng.uniform(-1, 1), plane=str(rng.choice(["xy", "yz", "zx"])), of=leaf()),
+        "shell": dict(of=leaf(), thickness=rng.uniform(0.05, 0.4), side=str(rng.choice(["inside", "outside", "both"]))),
+        "tpms": dict(type=str(rng.choice(["gyroid", "schwarz_p", "diamond"])), cell=rng.uniform(0.3, 1.0),
+                     thickness="0.05 + 0.1 * abs(d)", d_from=leaf()) if rng.random() < 0.5 else
+                dict(type=str(rng.choice(["gyroid", "schwarz_p", "diamond"])), cell="0.5 + 0.2 * x",
+                     thickness=rng.uniform(0.02, 0.2)),
+        "lattice": dict(struts=[(v3(), v3()), (v3(), v3())], radius=rng.uniform(0.05, 0.3)) if rng.random() < 0.5
+                   else dict(pattern=str(rng.choice(["cubic", "bcc", "octet"])), cell=rng.uniform(0.4, 1.0),
+                             bounds=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), radius=rng.uniform(0.02, 0.2)),
     }
     return node(kind, **params[kind])
 

@@ -12,7 +12,7 @@ libfive use the opposite sign).
 from __future__ import annotations
 
 import math
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any
 
 import numpy as np
@@ -109,6 +109,8 @@ def _plain(v: Any) -> Any:
     """YAML-safe data: shapes become their mappings, arrays and tuples lists, NumPy scalars floats."""
     if isinstance(v, Shape):
         return v.to_dict()
+    if isinstance(v, PurePath):
+        return str(v)
     if isinstance(v, np.ndarray):
         return [_plain(x) for x in v.tolist()]
     if isinstance(v, (list, tuple)):

@@ -103,19 +103,22 @@ def test_d_without_d_from_is_an_input_error(tmp_path) -> None:
         job_of(tmp_path, "lattice: {pattern: cubic, cell: 0.01, bounds: [[0, 0, 0], [1, 1, 1]], radius: 0.001}")
 
 
-def thickness_formula(p: np.ndarray) -> float:
-    d = 0.5 - np.abs(p).max()  # the box's signed distance inside
-    return 0.03 + 0.1 * d
+@pytest.mark.parametrize("part_kind", ["frep", "mesh"])
+def test_graded_gyroid_infill_of_a_shelled_part(tmp_path, part_kind) -> None:
+    """Part [-0.5, 0.5]^3 (an FRep box, or a 12-triangle box mesh as a BSP-field): a 0.06 shell
+    plus a gyroid infill (cell 0.4) whose wall is 0.03 + 0.1 d thick, d the part's field (the
+    distance to its surface inside). One component; the wall thickness measured on the written
+    grid along the gyroid normal matches the formula within a voxel."""
+    import trimesh
 
-
-def test_graded_gyroid_infill_of_a_shelled_box(tmp_path) -> None:
-    """Box part [-0.5, 0.5]^3: a 0.06 shell plus a gyroid infill (cell 0.4) whose wall is
-    0.03 + 0.1 d thick, d the distance to the part's surface. One component; the wall thickness
-    measured on the written grid along the gyroid normal matches the formula within a voxel."""
     from pipeline.nodes.am import _TPMS
 
     h, cell = 0.01, 0.4
-    part = fv.box([-0.5] * 3, [0.5] * 3)
+    if part_kind == "frep":
+        part = fv.box([-0.5] * 3, [0.5] * 3)
+    else:
+        trimesh.creation.box((1.0, 1.0, 1.0)).export(str(tmp_path / "part.stl"))
+        part = fv.mesh(tmp_path / "part.stl", rfunc="min_max")
     infill = part & fv.tpms("gyroid", cell, "0.03 + 0.1 * d", d_from=part)
     model = fv.union(fv.shell(part, 0.06), infill, rfunc="min_max")
     cfg = fv.config(model, [[-0.56] * 3, [0.56] * 3], voxel_size=h,
@@ -129,6 +132,11 @@ def test_graded_gyroid_infill_of_a_shelled_box(tmp_path) -> None:
 
     def sample(pts: np.ndarray) -> np.ndarray:  # trilinear, world -> index space
         return map_coordinates(dense, (pts / h + n).T, order=1)
+
+    def thickness_formula(p: np.ndarray) -> float:
+        d = part.evaluate(p)
+        assert d == pytest.approx(0.5 - np.abs(p).max(), abs=1e-9)  # the distance to the surface inside
+        return 0.03 + 0.1 * d
 
     k = 2 * math.pi / cell
     rng = np.random.default_rng(5)

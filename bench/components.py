@@ -237,8 +237,8 @@ if __name__ == "__main__":
         if sys.argv[1:] == ["--bricked"]:
             table_bricked()
             sys.exit(0)
-        if sys.argv[1:] == ["--cc3d"]:
-            table_cc3d()
+        if sys.argv[1:2] == ["--cc3d"]:  # optional depths after it (default 9 10)
+            table_cc3d(depths=tuple(int(d) for d in sys.argv[2:]) or (9, 10))
             sys.exit(0)
         table_sparse_vs_dense()
         table_continuation()

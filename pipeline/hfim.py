@@ -352,9 +352,22 @@ def interior_tiles(fine: EikonalResult, domain_index_bounds, order: int = 2, tol
 
 
 def fill_tiles(grid, origins: np.ndarray, values: np.ndarray, cell: int = LEAF) -> None:
-    """Active constant tiles of edge ``cell`` voxels (``grid.fill`` over a whole leaf makes a tile)."""
-    for o, v in zip(np.asarray(origins, np.int64).tolist(), np.asarray(values, float).tolist(), strict=True):
-        grid.fill(tuple(o), (o[0] + cell - 1, o[1] + cell - 1, o[2] + cell - 1), v, True)
+    """Active constant tiles of edge ``cell`` voxels (``grid.fill`` over whole leaves makes
+    tiles); tiles that follow each other along z with the same value go in one call."""
+    o = np.asarray(origins, np.int64).reshape(-1, 3)
+    v = np.asarray(values, np.float32).reshape(-1)
+    if len(o) == 0:
+        return
+    order = np.lexsort((o[:, 2], o[:, 1], o[:, 0]))
+    o, v = o[order], v[order]
+    brk = np.ones(len(o), bool)
+    brk[1:] = (o[1:, 0] != o[:-1, 0]) | (o[1:, 1] != o[:-1, 1]) | (o[1:, 2] != o[:-1, 2] + cell) | (v[1:] != v[:-1])
+    starts = np.flatnonzero(brk)
+    ends = np.append(starts[1:], len(o)) - 1
+    for s, e in zip(starts.tolist(), ends.tolist(), strict=True):
+        a, b = o[s], o[e]
+        grid.fill((int(a[0]), int(a[1]), int(a[2])), (int(b[0]) + cell - 1, int(b[1]) + cell - 1, int(b[2]) + cell - 1),
+                  float(v[s]), True)
 
 
 def sample_distance(res: HierarchicalResult, ijk: np.ndarray) -> np.ndarray:

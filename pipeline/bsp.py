@@ -810,8 +810,8 @@ class BSPField:
         """Field values (N,) at points (N, d)."""
         p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, self.dim))
         if self._short_circuit:  # exact: the same values to the bit (pipeline.bsp_minmax)
-            t = self.tree
-            return bsp_minmax.eval_points(p, t.normals, t.offsets, t.pos, t.neg, t.mode, self.stack_depth)
+            t = self.minmax_tree
+            return bsp_minmax.eval_points(p, t.normals, t.offsets, t.pos, t.neg, t.mode, t.depth)
         return _eval_tree(p, *self._args())
 
     def bound(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -819,9 +819,9 @@ class BSPField:
         lo = np.ascontiguousarray(np.asarray(lo, dtype=np.float64).reshape(-1, self.dim))
         hi = np.ascontiguousarray(np.asarray(hi, dtype=np.float64).reshape(-1, self.dim))
         if self._short_circuit:
-            t = self.tree
+            t = self.minmax_tree
             return bsp_minmax.bound_boxes(lo, hi, t.normals, t.offsets, t.pos, t.neg, t.mode, 1e-14 * self.scale,
-                                          self.stack_depth)
+                                          t.depth)
         return _bound_tree(lo, hi, *self._args(), 1e-14 * self.scale)
 
     @property
@@ -830,8 +830,11 @@ class BSPField:
         return self.rfunc == "min_max" and self.dim == 3
 
     @property
-    def stack_depth(self) -> int:
-        """Nodes on the tree's longest root-to-leaf path (stack room of the short-circuit kernels)."""
-        if getattr(self, "_depth", None) is None:
-            self._depth = int(bsp_minmax.tree_depth(self.tree.pos, self.tree.neg))
-        return self._depth
+    def minmax_tree(self) -> Tree:
+        """The evaluation tree of the min_max field (pipeline.bsp_minmax.regroup_chains: the
+        same values, chains of min/max as balanced trees); ``depth``: its longest root path."""
+        if getattr(self, "_minmax", None) is None:
+            t = self.tree
+            nn, oo, pp, qq, mm = bsp_minmax.regroup_chains(t.normals, t.offsets, t.pos, t.neg, t.mode)
+            self._minmax = Tree(nn, oo, pp, qq, mm, t.splits, int(bsp_minmax.tree_depth(pp, qq)))
+        return self._minmax

@@ -33,8 +33,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-# node modes of the compiled tree
-LEAF, POS_ONLY, NEG_ONLY, GENERAL, SPECIAL_B, SPECIAL_C = range(6)
+# node modes of the compiled tree; MIN2 / MAX2 (no plane: min / max of the two subtrees) occur
+# only in the evaluation tree of :func:`regroup_chains`
+LEAF, POS_ONLY, NEG_ONLY, GENERAL, SPECIAL_B, SPECIAL_C, MIN2, MAX2 = range(8)
+CHAIN_MIN = 8  # chains shorter than this stay as they are
 
 
 @njit(cache=True, inline="always")
@@ -50,6 +52,10 @@ def _node(m, fa, fb, fc):
         return min(max(fa, fc), fb)
     if m == SPECIAL_C:
         return min(max(-fa, fb), fc)
+    if m == MIN2:
+        return min(fb, fc)
+    if m == MAX2:
+        return max(fb, fc)
     return fa
 
 
@@ -66,13 +72,17 @@ def _node_box(m, alo, ahi, blo, bhi, clo, chi):
         return min(max(alo, clo), blo), min(max(ahi, chi), bhi)
     if m == SPECIAL_C:
         return min(max(-ahi, blo), clo), min(max(-alo, bhi), chi)
+    if m == MIN2:
+        return min(blo, clo), min(bhi, chi)
+    if m == MAX2:
+        return max(blo, clo), max(bhi, chi)
     return alo, ahi
 
 
 @njit(cache=True, inline="always")
 def _first_is_pos(m, fa):
     """Which subtree to visit first: the one on the point's side of the plane."""
-    return m == POS_ONLY or m == SPECIAL_B or (m == GENERAL and fa >= 0.0)  # noqa: SIM109 (plain int tests)
+    return m == POS_ONLY or m == SPECIAL_B or m >= MIN2 or (m == GENERAL and fa >= 0.0)  # noqa: SIM109
 
 
 @njit(cache=True, inline="always")
@@ -103,6 +113,12 @@ def point_value(px, py, pz, start, normals, offsets, pos, neg, mode, sj, sv):
         s = sj[1, top]
         m = mode[j]
         if s == 0:
+            if m >= MIN2:
+                sj[1, top] = 1
+                top += 1
+                sj[0, top] = pos[j]
+                sj[1, top] = 0
+                continue
             fa = offsets[j] + normals[j, 0] * px + normals[j, 1] * py + normals[j, 2] * pz
             if m == LEAF:
                 ret = fa
@@ -121,7 +137,7 @@ def point_value(px, py, pz, start, normals, offsets, pos, neg, mode, sj, sv):
                 ret = min(fa, ret)
             elif m == NEG_ONLY:
                 ret = max(fa, ret)
-            elif not _decided(m, s, fa, fa, ret, ret):
+            elif m >= MIN2 or not _decided(m, s, fa, fa, ret, ret):
                 sv[1, top] = ret
                 sj[1, top] = s + 2
                 top += 1
@@ -154,6 +170,14 @@ def box_bound(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, neg, m
         s = sj[1, top]
         m = mode[j]
         if s == 0:
+            if m >= MIN2:  # no plane
+                sv[0, top] = 0.0
+                sv[1, top] = 0.0
+                sj[1, top] = 1
+                top += 1
+                sj[0, top] = pos[j]
+                sj[1, top] = 0
+                continue
             centre = offsets[j] + normals[j, 0] * c0 + normals[j, 1] * c1 + normals[j, 2] * c2
             rad = abs(normals[j, 0]) * r0 + abs(normals[j, 1]) * r1 + abs(normals[j, 2]) * r2
             alo = centre - rad - pad
@@ -177,9 +201,10 @@ def box_bound(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, neg, m
                 rlo, rhi, rstart = min(alo, rlo), min(ahi, rhi), j
             elif m == NEG_ONLY and not ahi <= rlo:  # max(fa, fc) is fc
                 rlo, rhi, rstart = max(alo, rlo), max(ahi, rhi), j
-            elif m != POS_ONLY and m != NEG_ONLY and not _decided(m, s, alo, ahi, rlo, rhi):
+            elif m >= MIN2 or (m != POS_ONLY and m != NEG_ONLY and not _decided(m, s, alo, ahi, rlo, rhi)):
                 sv[2, top] = rlo
                 sv[3, top] = rhi
+                sj[2, top] = rstart
                 sj[1, top] = s + 2
                 top += 1
                 sj[0, top] = neg[j] if s == 1 else pos[j]
@@ -194,6 +219,17 @@ def box_bound(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, neg, m
             blo, bhi, clo, chi = sv[2, top], sv[3, top], rlo, rhi
         else:
             blo, bhi, clo, chi = rlo, rhi, sv[2, top], sv[3, top]
+        if m >= MIN2:  # one subtree dominating over the box is the node there (start with it)
+            low_first = (bhi <= clo) if m == MIN2 else (blo >= chi)
+            low_second = (chi <= blo) if m == MIN2 else (clo >= bhi)
+            if low_first:
+                rlo, rhi, rstart = blo - pad, bhi + pad, sj[2, top]
+                top -= 1
+                continue
+            if low_second:
+                rlo, rhi = clo - pad, chi + pad  # rstart: the second subtree's, as returned
+                top -= 1
+                continue
         a, b = _node_box(m, alo, ahi, blo, bhi, clo, chi)
         rlo, rhi, rstart = a - pad, b + pad, j
         top -= 1
@@ -246,3 +282,74 @@ def tree_depth(pos: np.ndarray, neg: np.ndarray) -> int:
             dmax = max(dmax, dep[neg[j]])
         dep[j] = dmax + 1
     return int(dep.max()) if n else 0
+
+
+def regroup_chains(normals, offsets, pos, neg, mode):
+    """The evaluation tree of a min_max BSP-field: every chain of CHAIN_MIN or more POS_ONLY nodes
+    (min(fa1, min(fa2, ... min(fak, f_tail)))) becomes a balanced tree of MIN2 nodes over the
+    planes as leaves and the tail, the planes ordered by their normals (a Morton order of the
+    normal's direction), so that the faces near a cell form a few subtrees the cell's bounds
+    single out; NEG_ONLY chains likewise with MAX2. min and max are associative and commutative
+    and return one of their operands, so the field is the same to the bit. A convex mesh's tree
+    is one such chain (a displaced icosphere's nearly so): each voxel then takes the min over
+    the few planes near it instead of over all of them.
+
+    Returns (normals, offsets, pos, neg, mode) in post-order, root last."""
+    n_out = []  # per new node: (plane node or -1, pos, neg, mode)
+    def emit(plane, p, q, m):
+        n_out.append((plane, p, q, m))
+        return len(n_out) - 1
+
+    def balanced(items, m):
+        while len(items) > 1:
+            items = [emit(-1, items[i], items[i + 1], m) if i + 1 < len(items) else items[i]
+                     for i in range(0, len(items), 2)]
+        return items[0]
+
+    order_key = _normal_keys(normals)
+    stack = [(int(len(mode) - 1), 0)]
+    result = {}
+    while stack:
+        j, state = stack.pop()
+        m = int(mode[j])
+        if m in (POS_ONLY, NEG_ONLY):
+            chain = [j]
+            nxt = int(pos[j] if m == POS_ONLY else neg[j])
+            while int(mode[nxt]) == m:
+                chain.append(nxt)
+                nxt = int(pos[nxt] if m == POS_ONLY else neg[nxt])
+            if len(chain) >= CHAIN_MIN:
+                if state == 0:
+                    stack.append((j, 1))
+                    stack.append((nxt, 0))
+                    continue
+                planes = sorted(chain, key=lambda k: order_key[k])
+                leaves = [emit(k, -1, -1, LEAF) for k in planes] + [result[nxt]]
+                result[j] = balanced(leaves, MIN2 if m == POS_ONLY else MAX2)
+                continue
+        kids = [int(c) for c in (pos[j], neg[j]) if c >= 0]
+        if state == 0 and kids:
+            stack.append((j, 1))
+            stack.extend((c, 0) for c in kids)
+            continue
+        result[j] = emit(j, result[int(pos[j])] if pos[j] >= 0 else -1,
+                         result[int(neg[j])] if neg[j] >= 0 else -1, m)
+    plane = np.array([e[0] for e in n_out], np.int64)
+    has = plane >= 0
+    nn = np.zeros((len(n_out), normals.shape[1]))
+    oo = np.zeros(len(n_out))
+    nn[has] = normals[plane[has]]
+    oo[has] = offsets[plane[has]]
+    return (np.ascontiguousarray(nn), oo, np.array([e[1] for e in n_out], np.int64),
+            np.array([e[2] for e in n_out], np.int64), np.array([e[3] for e in n_out], np.int64))
+
+
+def _normal_keys(normals: np.ndarray) -> np.ndarray:
+    """Morton code of each unit normal's (x, y, z) quantised to 10 bits: nearby directions,
+    nearby keys."""
+    q = np.clip(((normals + 1.0) * 0.5 * 1023).astype(np.int64), 0, 1023)
+    key = np.zeros(len(normals), np.int64)
+    for bit in range(10):
+        for axis in range(normals.shape[1]):
+            key |= ((q[:, axis] >> bit) & 1) << (bit * normals.shape[1] + axis)
+    return key

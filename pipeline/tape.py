@@ -83,7 +83,7 @@ class TapeBuilder:
         parts = [(t, self.tree_base[id(t)]) for t in self.trees]
         shift = [np.where(t.pos >= 0, t.pos + b, -1) for t, b in parts], [np.where(t.neg >= 0, t.neg + b, -1)
                                                                            for t, b in parts]
-        depth = max(int(tree_depth(t.pos.astype(np.int64), t.neg.astype(np.int64))) for t, _ in parts)
+        depth = max(int(tree_depth(t.pos.astype(np.int64), t.neg.astype(np.int64))) for t, _ in parts)  # stack room
         return Oracle(np.ascontiguousarray(np.concatenate([t.normals for t, _ in parts]), np.float64),
                       np.concatenate([t.offsets for t, _ in parts]).astype(np.float64),
                       np.concatenate(shift[0]).astype(np.int64), np.concatenate(shift[1]).astype(np.int64),

@@ -42,6 +42,9 @@ NODES = {
     "twist": "twist: {rate: 90, of: {box: {min: [-0.3, -0.1, -0.6], max: [0.3, 0.1, 0.6]}}}",
     "taper": "taper: {range: [-0.5, 0.5], scale: [0.5, 1.0], of: {cylinder: {radius: 0.4, height: 1.0}}}",
     "bend": "bend: {rate: 1.0, of: {box: {min: [-0.6, -0.1, -0.1], max: [0.6, 0.1, 0.1]}}}",
+    "shell": "shell: {of: {torus: {major: 0.6, minor: 0.2}}, thickness: 0.08, side: both}",
+    "tpms": 'tpms: {type: schwarz_p, cell: "0.4 + 0.1 * x", thickness: "0.03 + 0.02 * (y + 1)"}',
+    "lattice": "lattice: {pattern: cubic, cell: 0.5, bounds: [[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]], radius: 0.05}",
 }
 
 
@@ -184,5 +187,5 @@ def test_meshes_in_csg_with_transforms_conform(tmp_path) -> None:
     job = job_of(tmp_path, model)
     tp = check_tape(job)
     assert tp.counts().get("bsp") == 2
-    trees = [n.impl.tree for n in job.model.walk() if type(n).__name__ == "Mesh"]
+    trees = [n.impl.minmax_tree for n in job.model.walk() if type(n).__name__ == "Mesh"]
     assert len(tp.oracle.mode) == sum(len(t.mode) for t in trees)

@@ -104,7 +104,7 @@ class Mesh(Node):
         if self.params.method != "bsp" or self.params.rfunc != "min_max":
             raise NotTraceable("mesh fields other than min_max BSP-fields are evaluated by their kernel")
         traced = next(v for v in (x, y, z) if isinstance(v, Sym))
-        return traced.tb.bsp_field(x, y, z, self.impl.tree)
+        return traced.tb.bsp_field(x, y, z, self.impl.minmax_tree)
 
     def describe(self) -> dict:
         """Manifest entry: the mesh checks and the BSP-tree counts (Table 1 of bsp-fields)."""

@@ -14,7 +14,7 @@ test: setup
 	$(PY) -m pytest -q -p no:cacheprovider tests
 
 lint: setup
-	$(PY) -m ruff check pipeline stages tests bench
+	$(PY) -m ruff check pipeline stages tests bench frepvdb
 
 bench: setup
 	$(PY) bench/voxelise.py

@@ -100,6 +100,15 @@ def _decided(m, s, alo, ahi, rlo, rhi):
     return False
 
 
+@njit(cache=True, inline="always")
+def _push(sj, top, state, child):
+    """Record the state the frame at ``top`` resumes in and open a frame for ``child``."""
+    sj[1, top] = state
+    sj[0, top + 1] = child
+    sj[1, top + 1] = 0
+    return top + 1
+
+
 @njit(cache=True)
 def point_value(px, py, pz, start, normals, offsets, pos, neg, mode, sj, sv):
     """Field of the subtree rooted at ``start`` at (px, py, pz). ``sj`` (2, D) int64 and ``sv``
@@ -112,13 +121,7 @@ def point_value(px, py, pz, start, normals, offsets, pos, neg, mode, sj, sv):
         j = sj[0, top]
         s = sj[1, top]
         m = mode[j]
-        if s == 0:
-            if m >= MIN2:
-                sj[1, top] = 1
-                top += 1
-                sj[0, top] = pos[j]
-                sj[1, top] = 0
-                continue
+        if s == 0:  # MIN2 / MAX2 have a zero plane: fa = 0, positive subtree first
             fa = offsets[j] + normals[j, 0] * px + normals[j, 1] * py + normals[j, 2] * pz
             if m == LEAF:
                 ret = fa
@@ -126,10 +129,7 @@ def point_value(px, py, pz, start, normals, offsets, pos, neg, mode, sj, sv):
                 continue
             sv[0, top] = fa
             first_pos = _first_is_pos(m, fa)
-            sj[1, top] = 1 if first_pos else 2
-            top += 1
-            sj[0, top] = pos[j] if first_pos else neg[j]
-            sj[1, top] = 0
+            top = _push(sj, top, 1 if first_pos else 2, pos[j] if first_pos else neg[j])
             continue
         fa = sv[0, top]
         if s <= 2:  # ret: the first subtree's value
@@ -139,10 +139,7 @@ def point_value(px, py, pz, start, normals, offsets, pos, neg, mode, sj, sv):
                 ret = max(fa, ret)
             elif m >= MIN2 or not _decided(m, s, fa, fa, ret, ret):
                 sv[1, top] = ret
-                sj[1, top] = s + 2
-                top += 1
-                sj[0, top] = neg[j] if s == 1 else pos[j]
-                sj[1, top] = 0
+                top = _push(sj, top, s + 2, neg[j] if s == 1 else pos[j])
                 continue
             top -= 1
             continue
@@ -170,14 +167,6 @@ def box_bound(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, neg, m
         s = sj[1, top]
         m = mode[j]
         if s == 0:
-            if m >= MIN2:  # no plane
-                sv[0, top] = 0.0
-                sv[1, top] = 0.0
-                sj[1, top] = 1
-                top += 1
-                sj[0, top] = pos[j]
-                sj[1, top] = 0
-                continue
             centre = offsets[j] + normals[j, 0] * c0 + normals[j, 1] * c1 + normals[j, 2] * c2
             rad = abs(normals[j, 0]) * r0 + abs(normals[j, 1]) * r1 + abs(normals[j, 2]) * r2
             alo = centre - rad - pad
@@ -189,10 +178,7 @@ def box_bound(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, neg, m
             sv[0, top] = alo
             sv[1, top] = ahi
             first_pos = _first_is_pos(m, alo)
-            sj[1, top] = 1 if first_pos else 2
-            top += 1
-            sj[0, top] = pos[j] if first_pos else neg[j]
-            sj[1, top] = 0
+            top = _push(sj, top, 1 if first_pos else 2, pos[j] if first_pos else neg[j])
             continue
         alo = sv[0, top]
         ahi = sv[1, top]
@@ -205,10 +191,7 @@ def box_bound(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, neg, m
                 sv[2, top] = rlo
                 sv[3, top] = rhi
                 sj[2, top] = rstart
-                sj[1, top] = s + 2
-                top += 1
-                sj[0, top] = neg[j] if s == 1 else pos[j]
-                sj[1, top] = 0
+                top = _push(sj, top, s + 2, neg[j] if s == 1 else pos[j])
                 continue
             # decided: the value (and the start node) is the first subtree's
             rlo -= pad

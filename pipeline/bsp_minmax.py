@@ -219,6 +219,108 @@ def box_bound(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, neg, m
     return rlo, rhi, rstart
 
 
+@njit(cache=True, inline="always")
+def _emit(j, p, q, m, normals, offsets, cn, co, cp, cq, cm, k):
+    """Copy node ``j``'s plane into slot ``k`` of a specialised tree, with children p, q and mode m."""
+    cn[k, 0] = normals[j, 0]
+    cn[k, 1] = normals[j, 1]
+    cn[k, 2] = normals[j, 2]
+    co[k] = offsets[j]
+    cp[k] = p
+    cq[k] = q
+    cm[k] = m
+    return k + 1
+
+
+@njit(cache=True)
+def specialise_box(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, neg, mode, pad, sj, sv,
+                   cn, co, cp, cq, cm):
+    """The subtree at ``start`` specialised to a box: the nodes the box cannot bypass, written in
+    post-order into (cn, co, cp, cq, cm) (the layout of the tree's own arrays); returns the root.
+
+    Same rules as :func:`box_bound`, applied to every node below the start instead of only on
+    the way to it: a node whose value over the box is its first subtree's (``_decided``, or a
+    POS_ONLY / NEG_ONLY whose plane never wins) is replaced by that subtree; a POS_ONLY /
+    NEG_ONLY whose plane always wins (min(fa, fb) with fa <= fb on the box) becomes a leaf of
+    its plane. Every replacement returns, at every point of the box, the operand the node would
+    return, computed by the same arithmetic: the specialised tree gives the same values to the
+    bit there. On a near-convex mesh (a chain of thousands of GENERAL nodes, every one decided
+    away from its plane) a voxel block's tree keeps the few nodes whose planes pass near it.
+    ``sj`` (3, D) int64, ``sv`` (4, D) float64: stack scratch, as box_bound's."""
+    c0, c1, c2 = 0.5 * (lo0 + hi0), 0.5 * (lo1 + hi1), 0.5 * (lo2 + hi2)
+    r0, r1, r2 = 0.5 * (hi0 - lo0), 0.5 * (hi1 - lo1), 0.5 * (hi2 - lo2)
+    top = 0
+    sj[0, 0] = start
+    sj[1, 0] = 0
+    rlo = rhi = 0.0
+    ridx = -1
+    k = 0
+    while top >= 0:
+        j = sj[0, top]
+        s = sj[1, top]
+        m = mode[j]
+        if s == 0:
+            centre = offsets[j] + normals[j, 0] * c0 + normals[j, 1] * c1 + normals[j, 2] * c2
+            rad = abs(normals[j, 0]) * r0 + abs(normals[j, 1]) * r1 + abs(normals[j, 2]) * r2
+            alo = centre - rad - pad
+            ahi = centre + rad + pad
+            if m == LEAF:
+                rlo, rhi, ridx = alo - pad, ahi + pad, k
+                k = _emit(j, -1, -1, LEAF, normals, offsets, cn, co, cp, cq, cm, k)
+                top -= 1
+                continue
+            sv[0, top] = alo
+            sv[1, top] = ahi
+            first_pos = _first_is_pos(m, alo)
+            top = _push(sj, top, 1 if first_pos else 2, pos[j] if first_pos else neg[j])
+            continue
+        alo = sv[0, top]
+        ahi = sv[1, top]
+        if s <= 2:
+            if m == POS_ONLY or m == NEG_ONLY:
+                own = alo >= rhi if m == POS_ONLY else ahi <= rlo  # the subtree always wins
+                plane = ahi <= rlo if m == POS_ONLY else alo >= rhi  # the plane always wins
+                if plane:
+                    rlo, rhi, ridx = alo, ahi, k
+                    k = _emit(j, -1, -1, LEAF, normals, offsets, cn, co, cp, cq, cm, k)
+                elif not own:
+                    if m == POS_ONLY:
+                        rlo, rhi = min(alo, rlo), min(ahi, rhi)
+                        k = _emit(j, ridx, -1, m, normals, offsets, cn, co, cp, cq, cm, k)
+                    else:
+                        rlo, rhi = max(alo, rlo), max(ahi, rhi)
+                        k = _emit(j, -1, ridx, m, normals, offsets, cn, co, cp, cq, cm, k)
+                    ridx = k - 1
+            elif m >= MIN2 or not _decided(m, s, alo, ahi, rlo, rhi):
+                sv[2, top] = rlo
+                sv[3, top] = rhi
+                sj[2, top] = ridx
+                top = _push(sj, top, s + 2, neg[j] if s == 1 else pos[j])
+                continue
+            rlo -= pad
+            rhi += pad
+            top -= 1
+            continue
+        if s == 3:
+            blo, bhi, clo, chi, bi, ci = sv[2, top], sv[3, top], rlo, rhi, sj[2, top], ridx
+        else:
+            blo, bhi, clo, chi, bi, ci = rlo, rhi, sv[2, top], sv[3, top], ridx, sj[2, top]
+        if m >= MIN2:  # one subtree dominating over the box is the node there
+            if (bhi <= clo) if m == MIN2 else (blo >= chi):
+                rlo, rhi, ridx = blo - pad, bhi + pad, bi
+                top -= 1
+                continue
+            if (chi <= blo) if m == MIN2 else (clo >= bhi):
+                rlo, rhi, ridx = clo - pad, chi + pad, ci
+                top -= 1
+                continue
+        a, b = _node_box(m, alo, ahi, blo, bhi, clo, chi)
+        rlo, rhi, ridx = a - pad, b + pad, k
+        k = _emit(j, bi, ci, m, normals, offsets, cn, co, cp, cq, cm, k)
+        top -= 1
+    return ridx
+
+
 @njit(parallel=True, cache=True)
 def eval_points(points, normals, offsets, pos, neg, mode, depth):
     """Values (N,) of the whole tree at points (N, 3)."""

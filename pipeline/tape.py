@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from pipeline.bsp_minmax import box_bound, point_value, tree_depth
+from pipeline.bsp_minmax import box_bound, point_value, specialise_box, tree_depth
 
 # --- opcodes ------------------------------------------------------------------------------------
 X, Y, Z, CONST, ADD, SUB, MUL, DIV, NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, MIN, MAX, R0AND, \
@@ -384,9 +384,31 @@ def _apply(op, va, vb, c):
 
 
 @njit(cache=True)
-def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m, orc, sj, sv):
+def _specialise_batch(x, y, z, m, st, orc, sj, sv, cn, co, cp, cq, cm):
+    """The mesh tree from node ``st`` specialised to the box of the points (x, y, z)[:m]; the
+    root in the scratch tree, or -1 when a coordinate is not finite."""
+    lo0 = hi0 = x[0]
+    lo1 = hi1 = y[0]
+    lo2 = hi2 = z[0]
+    for v in range(1, m):
+        lo0, hi0 = min(lo0, x[v]), max(hi0, x[v])
+        lo1, hi1 = min(lo1, y[v]), max(hi1, y[v])
+        lo2, hi2 = min(lo2, z[v]), max(hi2, z[v])
+    big = max(max(abs(lo0), abs(hi0)), max(max(abs(lo1), abs(hi1)), max(abs(lo2), abs(hi2))))
+    if not math.isfinite(big + lo0 + lo1 + lo2):
+        return -1
+    pad = 1e-14 * (1.0 + big)  # as _bound_bsp: covers the rounding of a plane's value at a point
+    return specialise_box(lo0, lo1, lo2, hi0, hi1, hi2, st, orc[0], orc[1], orc[2], orc[3], orc[4], pad, sj, sv,
+                          cn, co, cp, cq, cm)
+
+
+@njit(cache=True)
+def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m, orc, sj, sv, spec, cn, co, cp, cq, cm):
     """Clause-major: each clause runs over the m points of the batch (the dispatch on the
-    opcode is paid once per clause, the inner loops are plain arithmetic)."""
+    opcode is paid once per clause, the inner loops are plain arithmetic). With ``spec`` (the
+    points of a voxel block: close together) a mesh clause first specialises its BSP-tree to
+    the bounding box of the batch's own coordinates (exact, bsp_minmax.specialise_box) into the
+    scratch tree (cn, co, cp, cq, cm), then runs the points on that."""
     for k in range(n):
         o = op[s + k]
         ck = c[s + k]
@@ -405,6 +427,13 @@ def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m, orc, sj, sv):
         ia, ib = a[s + k], b[s + k]
         if o == BSP:  # the mesh oracle from its start node; coordinates: BSPXY's operands and z
             xa, ya, st = a[s + ia], b[s + ia], np.int64(ck)
+            if spec and m > 1:
+                root = _specialise_batch(reg[xa], reg[ya], reg[ib], m, st, orc, sj, sv, cn, co, cp, cq, cm)
+                if root >= 0:
+                    for v in range(m):
+                        reg[k, v] = point_value(reg[xa, v], reg[ya, v], reg[ib, v], root, cn, co, cp, cq, cm, sj,
+                                                sv)
+                    continue
             for v in range(m):
                 reg[k, v] = point_value(reg[xa, v], reg[ya, v], reg[ib, v], st, orc[0], orc[1], orc[2], orc[3],
                                         orc[4], sj, sv)
@@ -448,30 +477,45 @@ def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, orc
     n = origins.shape[0]
     m = block * block * block
     out = np.empty((n, block, block, block))
-    for q in prange(n):
+    nn = max(orc[0].shape[0], 1)
+    per = 16
+    for ch in prange((n + per - 1) // per):  # scratch once per chunk of blocks
         reg = np.empty((max(maxlen, 1), m))
-        sj = np.empty((2, odepth + 2), np.int64)
-        sv = np.empty((2, odepth + 2))
+        sj = np.empty((3, odepth + 2), np.int64)
+        sv = np.empty((4, odepth + 2))
+        cn, co = np.empty((nn, 3)), np.empty(nn)
+        cp, cq, cm = np.empty(nn, np.int64), np.empty(nn, np.int64), np.empty(nn, np.int64)
         px = np.empty(m)
         py = np.empty(m)
         pz = np.empty(m)
-        v = 0
-        for i in range(block):
-            for j in range(block):
-                for k in range(block):
-                    px[v] = (origins[q, 0] + i) * h
-                    py[v] = (origins[q, 1] + j) * h
-                    pz[v] = (origins[q, 2] + k) * h
-                    v += 1
-        tp = tape_of[q]
-        vals = _run_batch(op, a, b, c, start[tp], length[tp], res[tp], px, py, pz, reg, m, orc, sj, sv)
-        v = 0
-        for i in range(block):
-            for j in range(block):
-                for k in range(block):
-                    out[q, i, j, k] = vals[v]
-                    v += 1
+        for q in range(ch * per, min(n, (ch + 1) * per)):
+            _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c, orc, reg, sj, sv, cn, co,
+                          cp, cq, cm, px, py, pz, out)
     return out
+
+
+@njit(cache=True)
+def _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c, orc, reg, sj, sv, cn, co, cp, cq,
+                  cm, px, py, pz, out):
+    """Values of block q's voxel centres into out[q]."""
+    m = block * block * block
+    v = 0
+    for i in range(block):
+        for j in range(block):
+            for k in range(block):
+                px[v] = (origins[q, 0] + i) * h
+                py[v] = (origins[q, 1] + j) * h
+                pz[v] = (origins[q, 2] + k) * h
+                v += 1
+    tp = tape_of[q]
+    vals = _run_batch(op, a, b, c, start[tp], length[tp], res[tp], px, py, pz, reg, m, orc, sj, sv, True, cn,
+                      co, cp, cq, cm)
+    v = 0
+    for i in range(block):
+        for j in range(block):
+            for k in range(block):
+                out[q, i, j, k] = vals[v]
+                v += 1
 
 
 @njit(parallel=True, cache=True)
@@ -485,10 +529,12 @@ def eval_points(pts, start, length, res, op, a, b, c, orc, odepth):
         reg = np.empty((max(ln, 1), 64))
         sj = np.empty((2, odepth + 2), np.int64)
         sv = np.empty((2, odepth + 2))
+        none_n, none_f, none_i = np.empty((0, 3)), np.empty(0), np.empty(0, np.int64)
         lo = q * 64
         m = min(64, n - lo)
         vals = _run_batch(op, a, b, c, start[0], ln, res[0], pts[lo:lo + m, 0].copy(), pts[lo:lo + m, 1].copy(),
-                          pts[lo:lo + m, 2].copy(), reg, m, orc, sj, sv)
+                          pts[lo:lo + m, 2].copy(), reg, m, orc, sj, sv, False, none_n, none_f, none_i, none_i,
+                          none_i)
         out[lo:lo + m] = vals[:m]
     return out
 

@@ -52,6 +52,8 @@ from pipeline.rfunctions import FAMILIES, SARDF_K
 from pipeline.small_lp import max_margin
 
 FAMILY_CODE = {name: i for i, name in enumerate(FAMILIES)}  # min_max 0, r0 1, sardf 2
+KD_MIN = 2048  # optimised trees of meshes above this many triangles start with median cuts ...
+KD_LEAF = 64  # ... down to lists of this many triangles (see _build_tree_kd)
 SMALL_MESH = 50000  # triangles up to which the compiled plane selection searches twice as much
 R0_SCALE = 2.0  # magnitude control of r0/sardf, in mesh diagonals (see BSPField.magnitude_scale)
 
@@ -540,7 +542,7 @@ def _scan_large(polys: Polygons, cand: np.ndarray, eps: float, chunk: int = 16) 
 
 def build_tree(polys: Polygons, planes: str = "optimised", seed: int = 0, eps: float | None = None,
                max_candidates: int = 128, sample: int | None = None, work: int | None = None,
-               rule: int = 2, engine: str = "auto") -> Tree:
+               rule: int = 2, engine: str = "auto", kd_leaf: int | None = KD_LEAF) -> Tree:
     """Build_Tree of section 3.3.1. ``engine``: "compiled" (3D, :mod:`pipeline.bsp_build`: at most
     ``max_candidates`` planes scored on at most ``sample`` triangles per node, about n log n),
     "python" (the NumPy reference, any dimension) or "auto" (compiled in 3D). ``work``: plane
@@ -559,9 +561,74 @@ def build_tree(polys: Polygons, planes: str = "optimised", seed: int = 0, eps: f
     sample = sample or (2048 if small else 512)
     work = work or (64 if small else 16)
     if engine == "compiled" or (engine == "auto" and d == 3):
+        if planes == "optimised" and d == 3 and kd_leaf and len(polys.pieces) > max(KD_MIN, kd_leaf):
+            return _build_tree_kd(polys, seed, eps, max_candidates, sample, work, rule, kd_leaf)
         return _build_tree_compiled(polys, planes == "naive", seed, eps, max_candidates, sample, work,
                                     rule)
     return _build_tree_python(polys, planes, seed, eps, max_candidates)
+
+
+def _build_tree_kd(polys: Polygons, seed: int, eps: float, max_candidates: int, sample: int, work: int,
+                   rule: int, kd_leaf: int) -> Tree:
+    """Balanced top, optimised bottom: while a list holds more than ``kd_leaf`` triangles it is
+    cut by the axis-aligned plane through the median of its triangles' centroids along their
+    widest extent (``_partition``: spanning polygons are split, counted in ``splits``); smaller
+    lists get the optimised Build_Tree of section 3.3.1.
+
+    Why: on a smooth, nearly convex surface every face plane has all other faces on one side
+    (Ksplit = 0 everywhere), so the optimised selection builds a chain as deep as the mesh is
+    large, and a point near the surface walks it and visits the sibling of every face plane that
+    passes near it (hundreds on a 20k-face sphere). Cut planes that halve the list make the root
+    path logarithmic; a point then meets only the few cut planes near it and the face planes of
+    its own small list. The cut planes hold no polygon and both of their sides hold some, so
+    their nodes take the general formula of section 3.3.2, which is exact for any plane: at a
+    point of the positive side, sign(f) = sign(f_pos), so the zero set and the sign are the
+    mesh's whatever plane the node cuts with."""
+    parts: list[tuple] = []  # (normals, offsets, pos, neg, mode) in post-order, indices global
+    count = splits = 0
+
+    def append(nn, oo, pp, qq, mm) -> int:
+        nonlocal count
+        parts.append((nn, oo, np.where(pp >= 0, pp + count, -1), np.where(qq >= 0, qq + count, -1), mm))
+        count += len(mm)
+        return count - 1
+
+    def leaf(pl: Polygons) -> int:
+        nonlocal splits
+        t = _build_tree_compiled(_relabel(pl), False, seed, eps, max_candidates, sample, work, rule)
+        splits += t.splits
+        return append(t.normals, t.offsets, t.pos, t.neg, t.mode)
+
+    def node(pl: Polygons) -> int:
+        nonlocal splits, count
+        if len(pl.pieces) <= kd_leaf:
+            return leaf(pl)
+        cen = pl.pieces.mean(axis=1)
+        axis = int(np.argmax(np.ptp(cen, axis=0)))
+        n = np.zeros(3)
+        n[axis] = 1.0
+        c = -float(np.median(cen[:, axis]))
+        p_list, n_list, ns = _partition(pl, n, c, eps)
+        if min(p_list.count, n_list.count) == 0 or max(len(p_list.pieces), len(n_list.pieces)) >= len(pl.pieces):
+            return leaf(pl)  # no progress (centroids on one plane): the optimised build decides
+        splits += ns
+        pj = node(p_list)
+        nj = node(n_list)
+        parts.append((n[None], np.array([c]), np.array([pj]), np.array([nj]), np.array([GENERAL])))
+        count += 1
+        return count - 1
+
+    node(polys)
+    nn, oo, pp, qq, mm = (np.concatenate([p[k] for p in parts]) for k in range(5))
+    pp, qq = pp.astype(np.int64), qq.astype(np.int64)
+    return Tree(np.ascontiguousarray(nn, np.float64), oo.astype(np.float64), pp, qq, mm.astype(np.int64), splits,
+                int(bsp_minmax.tree_depth(pp, qq)))
+
+
+def _relabel(pl: Polygons) -> Polygons:
+    """Plane labels renumbered 0..L-1 (the compiled build sizes its scratch by the largest)."""
+    _, lab = np.unique(pl.plane_id, return_inverse=True)
+    return Polygons(pl.pieces, pl.owner, pl.normal, pl.offset, lab.astype(np.int64))
 
 
 def _build_tree_compiled(polys: Polygons, naive: bool, seed: int, eps: float, max_candidates: int,

@@ -277,7 +277,7 @@ def specialise_box(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, n
         alo = sv[0, top]
         ahi = sv[1, top]
         if s <= 2:
-            if m == POS_ONLY or m == NEG_ONLY:
+            if m == POS_ONLY or m == NEG_ONLY:  # noqa: SIM109 (plain compares in the kernel)
                 own = alo >= rhi if m == POS_ONLY else ahi <= rlo  # the subtree always wins
                 plane = ahi <= rlo if m == POS_ONLY else alo >= rhi  # the plane always wins
                 if plane:

@@ -71,16 +71,35 @@ def test_build_scales_about_n_log_n() -> None:
 
 
 def test_deep_tree_evaluates_and_bounds() -> None:
-    """A near-convex surface gives long chains (depth in the thousands): evaluation and bounds are
-    loops over the post-order arrays and the special-case pass is bounded, so nothing recurses."""
+    """Without the median cuts a near-convex surface gives long chains (depth in the thousands):
+    evaluation and bounds are loops over the post-order arrays and the special-case pass is
+    bounded, so nothing recurses."""
     mesh = bumpy_sphere(5)
-    field = BSPField.from_mesh(mesh)
-    assert field.stats["depth"] > 1000
+    polys = merge_coplanar(mesh.vertices, mesh.faces)
+    field = BSPField(build_tree(polys, kd_leaf=None), "r0", {}, float(mesh.scale))
+    assert field.tree.depth > 1000
     p = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
     v = field.evaluate(p)
     assert v[0] > 0 > v[1]
     lo, hi = field.bound(p - 0.01, p + 0.01)
     assert np.all(lo <= v) and np.all(v <= hi)
+
+
+def test_median_cuts_make_large_trees_shallow() -> None:
+    """Above KD_MIN triangles the optimised build first halves the list by median cuts: the
+    20k-face bumpy sphere's tree is tens of nodes deep instead of thousands, with no more splits
+    than the chain (and far fewer than naive), and its field is exact (sign and zero set above)."""
+    from pipeline.bsp import KD_LEAF, KD_MIN
+
+    mesh = bumpy_sphere(5)
+    polys = merge_coplanar(mesh.vertices, mesh.faces)
+    assert len(polys.pieces) > KD_MIN
+    kd, chain = build_tree(polys), build_tree(polys, kd_leaf=None)
+    assert kd.depth < 3 * (np.log2(len(polys.pieces) / KD_LEAF) + KD_LEAF) and chain.depth > 20 * kd.depth
+    assert kd.splits <= 1.2 * chain.splits
+    small = merge_coplanar(*(lambda m: (m.vertices, m.faces))(bumpy_sphere(3)))  # 1280 faces: unchanged
+    a, b = build_tree(small), build_tree(small, kd_leaf=None)
+    assert np.array_equal(a.normals, b.normals) and np.array_equal(a.pos, b.pos)
 
 
 @pytest.mark.parametrize("planes", ["naive", "optimised"])

@@ -197,6 +197,7 @@ def mesh_sign_agreement(tmp: Path, mesh_path: Path, family: str, res: int, stage
 def _generated_meshes(tmp: Path) -> dict[str, Path]:
     shapes = {
         "icosphere": trimesh.creation.icosphere(3, 0.8),  # 1280 faces, BSP depth > 100
+        "bumpy_icosphere": _bumpy_icosphere(),  # 5120 faces: the optimised build's median cuts
         "torus": trimesh.creation.torus(0.6, 0.25, major_sections=24, minor_sections=12),
         "box_with_holes": _box_with_holes(),
     }
@@ -205,6 +206,13 @@ def _generated_meshes(tmp: Path) -> dict[str, Path]:
         out[name] = tmp / f"{name}.off"
         m.export(str(out[name]))
     return out
+
+
+def _bumpy_icosphere() -> trimesh.Trimesh:
+    m = trimesh.creation.icosphere(4)
+    v = m.vertices
+    r = 0.8 * (1.0 + 0.05 * np.sin(5 * v[:, 0]) * np.sin(7 * v[:, 1]) * np.sin(6 * v[:, 2]))
+    return trimesh.Trimesh(v * r[:, None], m.faces, process=False)
 
 
 def _box_with_holes() -> trimesh.Trimesh:
@@ -241,7 +249,7 @@ def generated(tmp_path_factory) -> dict[str, Path]:
 
 
 @pytest.mark.parametrize("family", FAMILIES)
-@pytest.mark.parametrize("name", ["icosphere", "torus", "box_with_holes"])
+@pytest.mark.parametrize("name", ["icosphere", "torus", "box_with_holes", "bumpy_icosphere"])
 def test_generated_meshes_written_sign(tmp_path, generated, name, family) -> None:
     r = mesh_sign_agreement(tmp_path, generated[name], family, 40)
     assert r["finite"] and r["unclosed"] == 0

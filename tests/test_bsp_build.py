@@ -123,3 +123,33 @@ def test_special_cases_are_counted_and_bounded() -> None:
     assert a.stats["special_cases"] >= 0 and b.stats["special_cases"] == 0
     p = np.random.default_rng(6).uniform(-1.2, 1.2, (2000, 3))
     assert np.array_equal(a.evaluate(p) > 0, b.evaluate(p) > 0)
+
+
+def test_vectorised_triangle_split_equals_clip_simplex() -> None:
+    """bsp._split_triangles (median cuts split ~ one triangle per face) gives the parts of the
+    per-piece Split_Polygon (_clip_simplex), in the same order, to the bit; cut planes through
+    vertices (axis planes at 0 through an icosphere) included."""
+    from pipeline import bsp
+
+    polys = merge_coplanar(*(lambda m: (m.vertices, m.faces))(bumpy_sphere(3)))
+    rng = np.random.default_rng(0)
+    for trial in range(12):
+        n = rng.normal(size=3)
+        n, c = n / np.linalg.norm(n), float(rng.uniform(-0.5, 0.5))
+        if trial % 3 == 0:
+            n, c = np.eye(3)[trial % 9 // 3], 0.0
+        s, cls = bsp._classify(polys, n, c, 1e-9)
+        idx = np.nonzero((cls == 3)[polys.owner])[0]
+        assert len(idx) > 0
+        got = bsp._split_triangles(polys, s, idx, 1e-9)
+        ref: list[list] = [[], [], [], []]
+        for i in idx:
+            si = np.where(np.abs(s[i]) <= 1e-9, 0.0, s[i])
+            v = polys.pieces[i]
+            one = si.min() >= 0 or si.max() <= 0
+            parts = (([v], []) if si.max() > 0 else ([], [v])) if one else bsp._clip_simplex(v, si)
+            for k, part in enumerate(parts):
+                ref[2 * k] += part
+                ref[2 * k + 1] += [polys.owner[i]] * len(part)
+        for a, b in zip(got, ref, strict=True):
+            assert np.array_equal(a, np.asarray(b).reshape(a.shape)), trial

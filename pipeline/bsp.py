@@ -53,7 +53,7 @@ from pipeline.small_lp import max_margin
 
 FAMILY_CODE = {name: i for i, name in enumerate(FAMILIES)}  # min_max 0, r0 1, sardf 2
 KD_MIN = 2048  # optimised trees of meshes above this many triangles start with median cuts ...
-KD_LEAF = 64  # ... down to lists of this many triangles (see _build_tree_kd)
+KD_LEAF = 64  # ... down to nodes of this many triangles (see _build_tree_compiled)
 SMALL_MESH = 50000  # triangles up to which the compiled plane selection searches twice as much
 R0_SCALE = 2.0  # magnitude control of r0/sardf, in mesh diagonals (see BSPField.magnitude_scale)
 
@@ -437,9 +437,9 @@ def _split_triangles(polys: Polygons, s_piece: np.ndarray, idx: np.ndarray, eps:
             loop[rows[m], cnt[m]] = v[m, i]
             cnt += m
             x = s[:, i] * s[:, j] < 0
-            with np.errstate(all="ignore"):
+            with np.errstate(all="ignore"):  # rows without a crossing divide 0 by 0; unused
                 t = s[:, i] / (s[:, i] - s[:, j])
-            p = v[:, i] + t[:, None] * (v[:, j] - v[:, i])
+                p = v[:, i] + t[:, None] * (v[:, j] - v[:, i])
             loop[rows[x], cnt[x]] = p[x]
             cnt += x
         # fan: (0, 1, 2) and, for a quadrilateral, (0, 2, 3)
@@ -605,19 +605,21 @@ def build_tree(polys: Polygons, planes: str = "optimised", seed: int = 0, eps: f
     sample = sample or (2048 if small else 512)
     work = work or (64 if small else 16)
     if engine == "compiled" or (engine == "auto" and d == 3):
-        if planes == "optimised" and d == 3 and kd_leaf and len(polys.pieces) > max(KD_MIN, kd_leaf):
-            return _build_tree_kd(polys, seed, eps, max_candidates, sample, work, rule, kd_leaf)
+        kd = kd_leaf if planes == "optimised" and kd_leaf and len(polys.pieces) > max(KD_MIN, kd_leaf) else 0
         return _build_tree_compiled(polys, planes == "naive", seed, eps, max_candidates, sample, work,
-                                    rule)
+                                    rule, kd)
     return _build_tree_python(polys, planes, seed, eps, max_candidates)
 
 
-def _build_tree_kd(polys: Polygons, seed: int, eps: float, max_candidates: int, sample: int, work: int,
-                   rule: int, kd_leaf: int) -> Tree:
-    """Balanced top, optimised bottom: while a list holds more than ``kd_leaf`` triangles it is
+def _build_tree_compiled(polys: Polygons, naive: bool, seed: int, eps: float, max_candidates: int,
+                         sample: int, work: int, rule: int, kd_leaf: int = 0) -> Tree:
+    """Run the compiled build; node planes are the selected polygons' planes and, with
+    ``kd_leaf``, the median cuts (rows of ``pn`` after the polygons').
+
+    Balanced top, optimised bottom: while a node holds more than ``kd_leaf`` triangles it is
     cut by the axis-aligned plane through the median of its triangles' centroids along their
-    widest extent (``_partition``: spanning polygons are split, counted in ``splits``); smaller
-    lists get the optimised Build_Tree of section 3.3.1.
+    widest extent (the builder's own partition: spanning polygons are split, counted in
+    ``splits``); smaller nodes get the optimised plane selection of section 3.3.3.
 
     Why: on a smooth, nearly convex surface every face plane has all other faces on one side
     (Ksplit = 0 everywhere), so the optimised selection builds a chain as deep as the mesh is
@@ -628,61 +630,15 @@ def _build_tree_kd(polys: Polygons, seed: int, eps: float, max_candidates: int, 
     their nodes take the general formula of section 3.3.2, which is exact for any plane: at a
     point of the positive side, sign(f) = sign(f_pos), so the zero set and the sign are the
     mesh's whatever plane the node cuts with."""
-    parts: list[tuple] = []  # (normals, offsets, pos, neg, mode) in post-order, indices global
-    count = splits = 0
-
-    def append(nn, oo, pp, qq, mm) -> int:
-        nonlocal count
-        parts.append((nn, oo, np.where(pp >= 0, pp + count, -1), np.where(qq >= 0, qq + count, -1), mm))
-        count += len(mm)
-        return count - 1
-
-    def leaf(pl: Polygons) -> int:
-        nonlocal splits
-        t = _build_tree_compiled(_relabel(pl), False, seed, eps, max_candidates, sample, work, rule)
-        splits += t.splits
-        return append(t.normals, t.offsets, t.pos, t.neg, t.mode)
-
-    def node(pl: Polygons) -> int:
-        nonlocal splits, count
-        if len(pl.pieces) <= kd_leaf:
-            return leaf(pl)
-        cen = pl.pieces.mean(axis=1)
-        axis = int(np.argmax(np.ptp(cen, axis=0)))
-        n = np.zeros(3)
-        n[axis] = 1.0
-        c = -float(np.median(cen[:, axis]))
-        p_list, n_list, ns = _partition(pl, n, c, eps)
-        if min(p_list.count, n_list.count) == 0 or max(len(p_list.pieces), len(n_list.pieces)) >= len(pl.pieces):
-            return leaf(pl)  # no progress (centroids on one plane): the optimised build decides
-        splits += ns
-        pj = node(p_list)
-        nj = node(n_list)
-        parts.append((n[None], np.array([c]), np.array([pj]), np.array([nj]), np.array([GENERAL])))
-        count += 1
-        return count - 1
-
-    node(polys)
-    nn, oo, pp, qq, mm = (np.concatenate([p[k] for p in parts]) for k in range(5))
-    pp, qq = pp.astype(np.int64), qq.astype(np.int64)
-    return Tree(np.ascontiguousarray(nn, np.float64), oo.astype(np.float64), pp, qq, mm.astype(np.int64), splits,
-                int(bsp_minmax.tree_depth(pp, qq)))
-
-
-def _relabel(pl: Polygons) -> Polygons:
-    """Plane labels renumbered 0..L-1 (the compiled build sizes its scratch by the largest)."""
-    _, lab = np.unique(pl.plane_id, return_inverse=True)
-    return Polygons(pl.pieces, pl.owner, pl.normal, pl.offset, lab.astype(np.int64))
-
-
-def _build_tree_compiled(polys: Polygons, naive: bool, seed: int, eps: float, max_candidates: int,
-                         sample: int, work: int, rule: int) -> Tree:
-    """Run the compiled build; node planes are the selected polygons' planes."""
-    pn = np.ascontiguousarray(np.concatenate([polys.normal, polys.offset[:, None]], axis=1))
+    nq = polys.count
+    spare = 4 * len(polys.pieces) // kd_leaf + 64 if kd_leaf else 0
+    pn = np.zeros((nq + spare, 4))
+    pn[:nq, :3], pn[:nq, 3] = polys.normal, polys.offset
     q, pos, neg, dep, splits = _build_compiled(
         np.ascontiguousarray(polys.pieces, dtype=np.float64), polys.owner.astype(np.int64), pn,
-        polys.plane_id.astype(np.int64), naive, seed, eps, max_candidates, sample, work, rule, BIG_NODE)
-    return _postorder(polys.normal[q], polys.offset[q], pos, neg, int(splits), int(dep.max()) + 1)
+        polys.plane_id.astype(np.int64), naive, seed, eps, max_candidates, sample, work, rule, BIG_NODE, nq,
+        kd_leaf)
+    return _postorder(pn[q, :3], pn[q, 3], pos, neg, int(splits), int(dep.max()) + 1)
 
 
 def _build_tree_python(polys: Polygons, planes: str, seed: int, eps: float, max_candidates: int) -> Tree:
@@ -815,9 +771,11 @@ def apply_special_cases(tree: Tree, tol: float, budget: int | None = None, cap: 
 
     Cells of a subtree are only enumerated up to ``cap`` per subtree (so only nodes whose two
     subtrees are small are checked, and the recursion depth stays below 2 * cap) and at most
-    ``budget`` linear programs are solved per tree, so large meshes keep a bounded build time;
-    nodes not checked keep the general formula, which is always correct. Default budget: 4000
-    up to 2000 nodes, 500 above (an LP takes about a millisecond; the count applied is the
+    ``budget`` linear programs are solved and at most ``budget`` nodes examined per tree, so
+    large meshes keep a bounded build time (a tree of median cuts has a small-subtree node per
+    64 triangles: enumerating all their cells took 5.5 s of an 82k-face build); nodes not
+    checked keep the general formula, which is always correct. Default budget: 4000 up to 2000
+    nodes, 500 above (an LP takes about 15 us to a millisecond; the count applied is the
     ``special_cases`` entry of the stats).
     """
     if budget is None:
@@ -828,7 +786,7 @@ def apply_special_cases(tree: Tree, tol: float, budget: int | None = None, cap: 
     mode = tree.mode.copy()
     small = np.zeros(len(mode) + 1, dtype=bool)
     small[:-1] = size + 1 <= 2 * cap
-    general = np.nonzero((mode == GENERAL) & small[tree.pos] & small[tree.neg])[0]
+    general = np.nonzero((mode == GENERAL) & small[tree.pos] & small[tree.neg])[0][:budget]
     for j in general:  # post-order: children are final before their parent
         if left[0] <= 0:
             break

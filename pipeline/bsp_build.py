@@ -431,13 +431,42 @@ def _chain_rest(tri, own, items, n_items, polys, npoly, pn, chain, k, eps, pmin,
 
 
 @njit(cache=True)
-def build(tri0, own0, pn, pid, naive, seed, eps, maxc, sample, work, rule, big):
-    """Build_Tree (section 3.3.1), iterative. pn (Q, 4): polygon normal and offset; pid (Q,):
-    oriented plane label. Returns per preorder node: polygon, positive child, negative child,
-    depth; and the number of polygon splits."""
+def _median_cut(tri, items, n_items):
+    """(axis, position) of the cut through the median centroid of the items along their widest
+    extent, or (-1, 0) when every centroid is the same point. The median moves to the middle of
+    the range when it is an end of it, so both sides hold a centroid."""
+    cen = np.empty((n_items, 3))
+    for i in range(n_items):
+        for d in range(3):
+            cen[i, d] = (tri[items[i], 0, d] + tri[items[i], 1, d] + tri[items[i], 2, d]) / 3.0
+    axis = 0
+    wide = -1.0
+    for d in range(3):
+        w = cen[:, d].max() - cen[:, d].min()
+        if w > wide:
+            axis, wide = d, w
+    if wide <= 0.0:
+        return -1, 0.0
+    lo, hi = cen[:, axis].min(), cen[:, axis].max()
+    m = np.median(cen[:, axis])
+    if not (lo < m < hi):
+        m = 0.5 * (lo + hi)
+    return axis, m
+
+
+@njit(cache=True)
+def build(tri0, own0, pn, pid, naive, seed, eps, maxc, sample, work, rule, big, nq, kd_leaf):
+    """Build_Tree (section 3.3.1), iterative. pn (Q + spare, 4): polygon normal and offset in its
+    first ``nq`` rows; pid (nq,): oriented plane label. Returns per preorder node: plane row of
+    pn, positive child, negative child, depth; and the number of polygon splits.
+
+    ``kd_leaf`` > 0 (optimised only): a node of more than kd_leaf triangles is cut by the plane
+    through its median centroid along the widest axis (a new row of pn, from nq on, while the
+    spare rows last) instead of a face plane; see pipeline.bsp.build_tree for why."""
+    kd_next = nq
     np.random.seed(seed)
     t0 = tri0.shape[0]
-    q = pn.shape[0]
+    q = nq
     tri = tri0.copy()
     own = own0.copy()
     tri, own = _grow_tri(tri, own, 2 * t0 + 16)
@@ -469,6 +498,31 @@ def build(tri0, own0, pn, pid, naive, seed, eps, maxc, sample, work, rule, big):
         s, e, parent, side, dep = stack.pop()
         nit = e - s
         items = buf[s:e].copy()
+        if not naive and kd_leaf > 0 and nit > kd_leaf and kd_next < pn.shape[0]:
+            axis, m = _median_cut(tri, items, nit)
+            if axis >= 0:
+                polys = _grow_int(polys, nit)
+                cands = _grow_int(cands, nit)
+                ctr[0] += 1
+                npoly, _ = _node_polys(own, items, nit, pid, pstamp, lstamp, ctr[0], polys, cands)
+                pn[kd_next, :] = 0.0
+                pn[kd_next, axis] = 1.0
+                pn[kd_next, 3] = -m
+                pos_out = _grow_int(pos_out, 3 * nit)
+                neg_out = _grow_int(neg_out, 3 * nit)
+                tri, own, n_tri2, npos, nneg, ns = _partition(tri, own, items, nit, polys, npoly, pn, kd_next,
+                                                              eps, n_tri, pmin, pmax, pos_out, neg_out)
+                if npos > 0 and nneg > 0:  # else: a face plane decides (kd planes assume both sides)
+                    n_tri = n_tri2
+                    node = _add_node(node_q, node_pos, node_neg, node_dep, kd_next, parent, side, dep)
+                    kd_next += 1
+                    splits += ns
+                    buf = _grow_int(buf, s + npos + nneg)
+                    buf[s:s + nneg] = neg_out[:nneg]
+                    buf[s + nneg:s + nneg + npos] = pos_out[:npos]
+                    stack.append((s, s + nneg, node, 1, dep + 1))
+                    stack.append((s + nneg, s + nneg + npos, node, 0, dep + 1))
+                    continue
         if not naive and nit >= big:
             tri, own, n_tri, buf, ns = _big_node(tri, own, n_tri, items, pn, pid, eps, maxc, sample,
                                                  work, rule, big, parent, side, dep, node_q, node_pos,

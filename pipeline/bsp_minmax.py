@@ -380,53 +380,96 @@ def regroup_chains(normals, offsets, pos, neg, mode):
     the few planes near it instead of over all of them.
 
     Returns (normals, offsets, pos, neg, mode) in post-order, root last."""
-    n_out = []  # per new node: (plane node or -1, pos, neg, mode)
-    def emit(plane, p, q, m):
-        n_out.append((plane, p, q, m))
-        return len(n_out) - 1
-
-    def balanced(items, m):
-        while len(items) > 1:
-            items = [emit(-1, items[i], items[i + 1], m) if i + 1 < len(items) else items[i]
-                     for i in range(0, len(items), 2)]
-        return items[0]
-
-    order_key = _normal_keys(normals)
-    stack = [(int(len(mode) - 1), 0)]
-    result = {}
-    while stack:
-        j, state = stack.pop()
-        m = int(mode[j])
-        if m in (POS_ONLY, NEG_ONLY):
-            chain = [j]
-            nxt = int(pos[j] if m == POS_ONLY else neg[j])
-            while int(mode[nxt]) == m:
-                chain.append(nxt)
-                nxt = int(pos[nxt] if m == POS_ONLY else neg[nxt])
-            if len(chain) >= CHAIN_MIN:
-                if state == 0:
-                    stack.append((j, 1))
-                    stack.append((nxt, 0))
-                    continue
-                planes = sorted(chain, key=lambda k: order_key[k])
-                leaves = [emit(k, -1, -1, LEAF) for k in planes] + [result[nxt]]
-                result[j] = balanced(leaves, MIN2 if m == POS_ONLY else MAX2)
-                continue
-        kids = [int(c) for c in (pos[j], neg[j]) if c >= 0]
-        if state == 0 and kids:
-            stack.append((j, 1))
-            stack.extend((c, 0) for c in kids)
-            continue
-        result[j] = emit(j, result[int(pos[j])] if pos[j] >= 0 else -1,
-                         result[int(neg[j])] if neg[j] >= 0 else -1, m)
-    plane = np.array([e[0] for e in n_out], np.int64)
+    n = len(mode)
+    if n == 0:
+        return normals, offsets, pos, neg, mode
+    plane, p, q, m, cnt = _regroup(pos.astype(np.int64), neg.astype(np.int64), mode.astype(np.int64),
+                                   _normal_keys(normals))
+    plane, p, q, m = plane[:cnt], p[:cnt], q[:cnt], m[:cnt]
     has = plane >= 0
-    nn = np.zeros((len(n_out), normals.shape[1]))
-    oo = np.zeros(len(n_out))
+    nn = np.zeros((cnt, normals.shape[1]))
+    oo = np.zeros(cnt)
     nn[has] = normals[plane[has]]
     oo[has] = offsets[plane[has]]
-    return (np.ascontiguousarray(nn), oo, np.array([e[1] for e in n_out], np.int64),
-            np.array([e[2] for e in n_out], np.int64), np.array([e[3] for e in n_out], np.int64))
+    return np.ascontiguousarray(nn), oo, p, q, m
+
+
+@njit(cache=True)
+def _regroup(pos, neg, mode, key):
+    """:func:`regroup_chains` on the post-order arrays, children first: a node that continues a
+    chain of CHAIN_MIN or more (its parent has its mode and it is the parent's min / max operand)
+    is skipped, and the chain's top emits the balanced tree of the chain's planes and its tail.
+    Returns per new node (plane node or -1, pos, neg, mode) and the node count."""
+    n = len(mode)
+    link = np.zeros(n, np.bool_)  # j continues its parent's chain
+    for j in range(n):
+        if mode[j] == POS_ONLY and pos[j] >= 0 and mode[pos[j]] == POS_ONLY:
+            link[pos[j]] = True
+        if mode[j] == NEG_ONLY and neg[j] >= 0 and mode[neg[j]] == NEG_ONLY:
+            link[neg[j]] = True
+    skip = np.zeros(n, np.bool_)
+    chain_len = np.zeros(n, np.int64)
+    for j in range(n):
+        m = mode[j]
+        if link[j] or (m != POS_ONLY and m != NEG_ONLY):
+            continue
+        length, k = 1, pos[j] if m == POS_ONLY else neg[j]
+        while mode[k] == m:
+            length += 1
+            k = pos[k] if m == POS_ONLY else neg[k]
+        chain_len[j] = length
+        if length >= CHAIN_MIN:
+            k = pos[j] if m == POS_ONLY else neg[j]
+            while mode[k] == m:
+                skip[k] = True
+                k = pos[k] if m == POS_ONLY else neg[k]
+    cap = 2 * n + 1
+    plane = np.empty(cap, np.int64)
+    op = np.empty(cap, np.int64)
+    oq = np.empty(cap, np.int64)
+    om = np.empty(cap, np.int64)
+    res = np.full(n, -1, np.int64)
+    items = np.empty(n + 1, np.int64)
+    cnt = 0
+    for j in range(n):
+        if skip[j]:
+            continue
+        m = mode[j]
+        if chain_len[j] >= CHAIN_MIN:
+            members = np.empty(chain_len[j], np.int64)
+            k, t = j, 0
+            while mode[k] == m and t < chain_len[j]:
+                members[t] = k
+                t += 1
+                k = pos[k] if m == POS_ONLY else neg[k]
+            order = np.argsort(key[members], kind="mergesort")
+            for t in range(len(members)):  # the planes as leaves, in normal order, then the tail
+                plane[cnt], op[cnt], oq[cnt], om[cnt] = members[order[t]], -1, -1, LEAF
+                items[t] = cnt
+                cnt += 1
+            items[len(members)] = res[k]
+            size = len(members) + 1
+            while size > 1:  # pair neighbours level by level
+                half = 0
+                for t in range(0, size, 2):
+                    if t + 1 < size:
+                        plane[cnt], op[cnt], oq[cnt] = -1, items[t], items[t + 1]
+                        om[cnt] = MIN2 if m == POS_ONLY else MAX2
+                        items[half] = cnt
+                        cnt += 1
+                    else:
+                        items[half] = items[t]
+                    half += 1
+                size = half
+            res[j] = items[0]
+            continue
+        plane[cnt] = j
+        op[cnt] = res[pos[j]] if pos[j] >= 0 else -1
+        oq[cnt] = res[neg[j]] if neg[j] >= 0 else -1
+        om[cnt] = m
+        res[j] = cnt
+        cnt += 1
+    return plane, op, oq, om, cnt
 
 
 def _normal_keys(normals: np.ndarray) -> np.ndarray:

@@ -26,9 +26,11 @@ every child is ``/usr/bin/time -f %M``. A run over ``--timeout`` is killed and p
 
 Meshes: the closed CGAL meshes of ../shared/meshes (anchor, pinion, blobby, couplingdown,
 elephant, knot2, fandisk: 1k-13k faces) and noise-displaced icospheres (radial displacement
-0.05 sin(5x) sin(7y) sin(6z)) of subdivision 5..8: ico20k, ico80k, ico320k, ico1.3M.
-Default (about 8 minutes on 2 cores): anchor pinion blobby elephant fandisk ico20k at 64^3,
-timeout 45 s, --max-faces 25000. Everything: ``--meshes all --max-faces 2000000 --res 64 256
+0.05 sin(5x) sin(7y) sin(6z)) of subdivision 5..8: ico20k, ico80k, ico320k, ico1.3M; torus50k, the
+marching-cubes surface of a noisy torus formula (genus 1, ~50k faces; sign reference: the
+formula, farther than its Lipschitz bound allows the surface to be).
+Default (about 10 minutes on 2 cores): anchor pinion blobby elephant fandisk ico20k torus50k at 64^3,
+timeout 45 s, --max-faces 60000. Everything: ``--meshes all --max-faces 2000000 --res 64 256
 512 --timeout 1800``. ``--quick``: anchor at 32^3 (about 20 s).
 """
 
@@ -59,7 +61,8 @@ MESH_DIR = ROOT.parent / "shared" / "meshes"
 FREPVDB = ROOT / ".venv" / "bin" / "frepvdb"
 CGAL = ("anchor", "pinion", "couplingdown", "blobby", "elephant", "knot2", "fandisk")
 ICO = {"ico20k": 5, "ico80k": 6, "ico320k": 7, "ico1.3M": 8}
-DEFAULT = ("anchor", "pinion", "blobby", "elephant", "fandisk", "ico20k")  # one per size class
+TORUS = {"torus50k": 100}  # marching-cubes grid points per side of the bumpy torus
+DEFAULT = ("anchor", "pinion", "blobby", "elephant", "fandisk", "ico20k", "torus50k")  # one per size class
 AMPLITUDE = 0.05
 POINTS = 3000
 
@@ -164,9 +167,41 @@ def radius(u: np.ndarray) -> np.ndarray:
     return 1.0 + AMPLITUDE * np.sin(5 * u[:, 0]) * np.sin(7 * u[:, 1]) * np.sin(6 * u[:, 2])
 
 
+def torus_field(p: np.ndarray) -> np.ndarray:
+    """A torus (R 0.7, r 0.3) with a noise of amplitude 0.03 (genus 1, not convex), > 0 inside;
+    Lipschitz constant at most 1 + 0.03 sqrt(8^2 + 9^2 + 7^2) < 1.42."""
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    return (0.3 - np.sqrt((np.sqrt(x ** 2 + y ** 2) - 0.7) ** 2 + z ** 2)
+            + 0.03 * np.sin(8 * x) * np.sin(9 * y) * np.sin(7 * z))
+
+
+def bumpy_torus(n: int) -> trimesh.Trimesh:
+    """The zero set of :func:`torus_field` by VTK's flying edges on n^3 points of [-1.1, 1.1]^3
+    (n = 100: about 50k faces)."""
+    import vtk
+    from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+
+    ax = np.linspace(-1.1, 1.1, n)
+    grid = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    img = vtk.vtkImageData()
+    img.SetDimensions(n, n, n)
+    img.SetSpacing(*[float(ax[1] - ax[0])] * 3)
+    img.SetOrigin(-1.1, -1.1, -1.1)
+    vals = torus_field(grid).reshape(n, n, n)
+    img.GetPointData().SetScalars(numpy_to_vtk(vals.ravel(order="F"), deep=True))
+    fe = vtk.vtkFlyingEdges3D()
+    fe.SetInputData(img)
+    fe.SetValue(0, 0.0)
+    fe.Update()
+    poly = fe.GetOutput()
+    verts = vtk_to_numpy(poly.GetPoints().GetData()).astype(float)
+    tris = vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3)
+    return trimesh.Trimesh(verts, tris, process=True)
+
+
 def load_case(name: str, folder: Path) -> Case:
-    if name in ICO:
-        mesh = icosphere(ICO[name])
+    if name in ICO or name in TORUS:
+        mesh = icosphere(ICO[name]) if name in ICO else bumpy_torus(TORUS[name])
         off = folder / f"{name}.off"
         mesh.export(off)
     else:
@@ -182,6 +217,8 @@ def load_case(name: str, folder: Path) -> Case:
 def face_count(name: str) -> int:
     if name in ICO:
         return 20 * 4 ** ICO[name]
+    if name in TORUS:
+        return 50_000
     return len(trimesh.load(MESH_DIR / f"{name}.off", force="mesh").faces)
 
 
@@ -236,6 +273,10 @@ def sample_points(case: Case, h: float, seed: int = 13) -> tuple[np.ndarray, np.
         far = 0.9 * np.abs(gap) > 1.5 * h  # |grad r| <= 0.05 * sqrt(5^2+7^2+6^2) < 0.55: 0.9 is safe
         keep = np.flatnonzero(far)[:POINTS]
         return ijk[keep], gap[keep] < 0
+    if case.name in TORUS:  # the formula's sign, farther than 1.5 h (Lipschitz 1.42) + the mesh's error
+        g = torus_field(centres)
+        keep = np.flatnonzero(np.abs(g) > 1.42 * 1.5 * h + 2e-3)[:POINTS]
+        return ijk[keep], g[keep] > 0
     dist = trimesh.proximity.closest_point(case.mesh, centres)[1]
     keep = np.flatnonzero(dist > 1.5 * h)[:POINTS]
     return ijk[keep], case.mesh.contains(centres[keep])
@@ -329,7 +370,7 @@ def main() -> None:
     ap.add_argument("--res", type=int, nargs="+", default=[64])
     ap.add_argument("--meshes", nargs="+", default=list(DEFAULT),
                     help=f"of {', '.join([*CGAL, *ICO])}, or 'all' (default: {' '.join(DEFAULT)})")
-    ap.add_argument("--max-faces", type=int, default=25_000, help="skip larger meshes (default 25000)")
+    ap.add_argument("--max-faces", type=int, default=60_000, help="skip larger meshes (default 60000)")
     ap.add_argument("--timeout", type=float, default=45.0, help="seconds per run (default 45)")
     ap.add_argument("--rfuncs", nargs="+", default=["r0", "min_max"], choices=["r0", "min_max", "sardf"])
     ap.add_argument("--cls", nargs=2, help=argparse.SUPPRESS)
@@ -340,7 +381,7 @@ def main() -> None:
     if args.quick:
         args.res, args.meshes, args.timeout = [32], ["anchor"], 40.0
     if args.meshes == ["all"]:
-        args.meshes = [*CGAL, *ICO]
+        args.meshes = [*CGAL, *ICO, *TORUS]
     run_all(args)
 
 

@@ -634,7 +634,7 @@ def _build_tree_compiled(polys: Polygons, naive: bool, seed: int, eps: float, ma
     spare = 4 * len(polys.pieces) // kd_leaf + 64 if kd_leaf else 0
     pn = np.zeros((nq + spare, 4))
     pn[:nq, :3], pn[:nq, 3] = polys.normal, polys.offset
-    q, pos, neg, dep, splits = _build_compiled(
+    q, pos, neg, dep, splits, pn = _build_compiled(
         np.ascontiguousarray(polys.pieces, dtype=np.float64), polys.owner.astype(np.int64), pn,
         polys.plane_id.astype(np.int64), naive, seed, eps, max_candidates, sample, work, rule, BIG_NODE, nq,
         kd_leaf)

@@ -458,11 +458,12 @@ def _median_cut(tri, items, n_items):
 def build(tri0, own0, pn, pid, naive, seed, eps, maxc, sample, work, rule, big, nq, kd_leaf):
     """Build_Tree (section 3.3.1), iterative. pn (Q + spare, 4): polygon normal and offset in its
     first ``nq`` rows; pid (nq,): oriented plane label. Returns per preorder node: plane row of
-    pn, positive child, negative child, depth; and the number of polygon splits.
+    pn, positive child, negative child, depth; the number of polygon splits; and pn (grown when
+    the cut planes needed more rows).
 
     ``kd_leaf`` > 0 (optimised only): a node of more than kd_leaf triangles is cut by the plane
-    through its median centroid along the widest axis (a new row of pn, from nq on, while the
-    spare rows last) instead of a face plane; see pipeline.bsp.build_tree for why."""
+    through its median centroid along the widest axis (a new row of pn, from nq on) instead of
+    a face plane; see pipeline.bsp._build_tree_compiled for why."""
     kd_next = nq
     np.random.seed(seed)
     t0 = tri0.shape[0]
@@ -498,9 +499,13 @@ def build(tri0, own0, pn, pid, naive, seed, eps, maxc, sample, work, rule, big, 
         s, e, parent, side, dep = stack.pop()
         nit = e - s
         items = buf[s:e].copy()
-        if not naive and kd_leaf > 0 and nit > kd_leaf and kd_next < pn.shape[0]:
+        if not naive and kd_leaf > 0 and nit > kd_leaf:
             axis, m = _median_cut(tri, items, nit)
             if axis >= 0:
+                if kd_next == pn.shape[0]:  # room for more cut planes
+                    pn2 = np.zeros((2 * pn.shape[0], 4))
+                    pn2[:pn.shape[0]] = pn
+                    pn = pn2
                 polys = _grow_int(polys, nit)
                 cands = _grow_int(cands, nit)
                 ctr[0] += 1
@@ -512,7 +517,10 @@ def build(tri0, own0, pn, pid, naive, seed, eps, maxc, sample, work, rule, big, 
                 neg_out = _grow_int(neg_out, 3 * nit)
                 tri, own, n_tri2, npos, nneg, ns = _partition(tri, own, items, nit, polys, npoly, pn, kd_next,
                                                               eps, n_tri, pmin, pmax, pos_out, neg_out)
-                if npos > 0 and nneg > 0:  # else: a face plane decides (kd planes assume both sides)
+                # both sides non-empty (a cut plane's node takes the general formula) and each at
+                # most 3/4 of the node (else thin triangles spanning the cut would only be split
+                # again and again): otherwise a face plane decides this node
+                if npos > 0 and nneg > 0 and 4 * max(npos, nneg) <= 3 * nit:
                     n_tri = n_tri2
                     node = _add_node(node_q, node_pos, node_neg, node_dep, kd_next, parent, side, dep)
                     kd_next += 1
@@ -566,7 +574,7 @@ def build(tri0, own0, pn, pid, naive, seed, eps, maxc, sample, work, rule, big, 
         if npos > 0:
             stack.append((s + nneg, s + nneg + npos, node, 0, dep + 1))
     return (np.array(node_q), np.array(node_pos), np.array(node_neg), np.array(node_dep),
-            splits)
+            splits, pn)
 
 
 # --------------------------------------------------------------------------- large nodes

@@ -26,9 +26,13 @@ centre; otherwise the enclosure is [-u_hi, u_hi].
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
 from numba import njit, prange
+
+if TYPE_CHECKING:  # trimesh takes ~0.3 s to import; only the type is needed here
+    import trimesh
 
 TRIM_A = 0.2  # eq. 15 constants of section 3.2.1
 TRIM_K = 2

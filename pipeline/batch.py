@@ -275,12 +275,14 @@ def check_unique_names(jobs: list[Job]) -> None:
 
 def _write_frame_series(jobs: Iterable[Job], out: Path, rows: dict) -> None:
     """A .pvd per frame series, pointing at each frame's .vti/.vtp (for ParaView's time slider)."""
-    from pipeline.vtkio import write_pvd
-
     series: dict[str, list[Job]] = {}
     for j in jobs:
         if j.frame:
             series.setdefault(j.frame["series"], []).append(j)
+    if not series:
+        return
+    from pipeline.vtkio import write_pvd  # VTK takes ~1 s to import: only for frame series
+
     for name, frames in series.items():
         for kind in ("vti", "vtp"):
             done = [j for j in frames if rows.get(j.name, {}).get("status") in ("ok", "skipped")]

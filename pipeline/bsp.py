@@ -38,9 +38,9 @@ same functions build and evaluate its tree.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 from numba import njit, prange
 from scipy.optimize import linprog
 
@@ -50,6 +50,9 @@ from pipeline.bsp_build import build as _build_compiled
 from pipeline.bsp_minmax import GENERAL, LEAF, NEG_ONLY, POS_ONLY, SPECIAL_B, SPECIAL_C
 from pipeline.rfunctions import FAMILIES, SARDF_K
 from pipeline.small_lp import max_margin
+
+if TYPE_CHECKING:  # trimesh takes ~0.3 s to import; only the type is needed here
+    import trimesh
 
 FAMILY_CODE = {name: i for i, name in enumerate(FAMILIES)}  # min_max 0, r0 1, sardf 2
 KD_MIN = 2048  # optimised trees of meshes above this many triangles start with median cuts ...

@@ -14,9 +14,12 @@ from __future__ import annotations
 import io
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
+
+if TYPE_CHECKING:
+    import trimesh
 
 SUFFIXES = (".off", ".obj", ".stl", ".ply")
 
@@ -39,6 +42,13 @@ class MeshReport:
     genus: list[int]
     volume: float
     warnings: list[str] = field(default_factory=list)
+
+
+def _trimesh():
+    """trimesh, imported on first use: it takes ~0.3 s, which a run without meshes need not pay."""
+    import trimesh
+
+    return trimesh
 
 
 def _fail(path: Path, why: str) -> MeshError:
@@ -66,12 +76,13 @@ def _read(path: Path) -> trimesh.Trimesh:
     kind = path.suffix.lower()[1:]
     try:
         # process=False: checked first, processed after (processing drops NaN vertices silently)
-        loaded = trimesh.load(io.BytesIO(_as_utf8(data, kind)), file_type=kind, force="mesh", process=False,
-                              resolver=trimesh.resolvers.FilePathResolver(str(path)))
+        tm = _trimesh()
+        loaded = tm.load(io.BytesIO(_as_utf8(data, kind)), file_type=kind, force="mesh", process=False,
+                         resolver=tm.resolvers.FilePathResolver(str(path)))
     except Exception as exc:  # trimesh raises many exception types on bad input
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise _fail(path, f"not a mesh: this .{kind} file does not parse ({_clip(msg)})") from None
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.vertices) == 0:
+    if not isinstance(loaded, _trimesh().Trimesh) or len(loaded.vertices) == 0:
         raise _fail(path, f"not a mesh: no vertices and no faces could be read from this .{kind} file")
     _check_coordinates(loaded, path)
     loaded.process()  # what process=True does: merge vertices so that shared edges are seen
@@ -109,7 +120,7 @@ def component_genus(mesh: trimesh.Trimesh) -> list[int]:
 
     For an orientable surface with b boundary loops, chi = V - E + F = 2 - 2g - b.
     """
-    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    labels = _trimesh().graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
     out: list[int] = []
     for lab in np.unique(labels):
         faces = mesh.faces[labels == lab]
@@ -125,7 +136,7 @@ def _boundary_loops(edges: np.ndarray) -> int:
     """Number of closed boundary loops formed by the boundary edges (graph components)."""
     if len(edges) == 0:
         return 0
-    return len(trimesh.graph.connected_components(edges, min_len=1))
+    return len(_trimesh().graph.connected_components(edges, min_len=1))
 
 
 def check_mesh(mesh: trimesh.Trimesh, path: str = "<mesh>") -> MeshReport:

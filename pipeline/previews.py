@@ -23,6 +23,7 @@ import vtk
 from vtk.util import numpy_support as nps
 
 from pipeline.atomic import atomic_path
+from pipeline.report import SURFACE_PNG
 from pipeline.vtkio import (
     SurfaceMesh,
     default_isovalue,
@@ -49,7 +50,6 @@ AXES = "xyz"
 MAX_PIXELS = 600  # longest side of a slice image before it is strided
 VIEW_AZIM, VIEW_ELEV = -60.0, 25.0  # degrees, as matplotlib's 3D default view
 MAX_FACES = 20_000
-SURFACE_PNG = "surface_mesh.png"
 
 
 @dataclass

@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.atomic import atomic_path
-from pipeline.previews import SURFACE_PNG
+
+SURFACE_PNG = "surface_mesh.png"  # the surface preview, shown first (pipeline.previews writes it)
 
 _CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:1.5em auto;max-width:1250px;

@@ -33,7 +33,6 @@ class Params(StageParams):
 
 def run(ctx, p: Params) -> dict:
     from pipeline.vdbio import write_vdb
-    from pipeline.vtkio import write_vtk_outputs
 
     if ctx.job.memory_estimate:  # the per-stage peak estimate checked before the run (config._check_memory)
         ctx.manifest.setdefault("memory_estimate_bytes", dict(ctx.job.memory_estimate))
@@ -48,6 +47,8 @@ def run(ctx, p: Params) -> dict:
         ctx.add_output(path, "vdb")
     mesh = None
     if p.vtk:
+        from pipeline.vtkio import write_vtk_outputs  # VTK takes ~1 s to import: only when asked for
+
         entries, mesh = write_vtk_outputs(ctx.out_dir, ctx.job.name, grids, ctx.voxel_size, p.vtk,
                                           max_points=p.max_points, adaptivity=p.adaptivity)
         for e in entries:

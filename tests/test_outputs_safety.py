@@ -37,7 +37,7 @@ stages:
 
 
 def ball(name: str | None = "ball", res: int = 24, center: str = "[0, 0, 0]", vtk: str = "", more: str = "") -> str:
-    head = "" if name is None else f"name: {json.dumps(name)}\n"
+    head = "" if name is None else f"name: {json.dumps(name, ensure_ascii=False)}\n"  # YAML rejects \\ud83c-style surrogate pairs
     return BALL.format(name=head, res=res, center=center, vtk=vtk, more=more)
 
 

@@ -131,3 +131,20 @@ def test_memory_check_counts_the_hfrep_interior(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert "big.yaml:2 domain.resolution: this domain needs an estimated" in err
     assert "interior distance of the hfrep stage" in err
+
+
+def test_a_run_without_vtk_previews_or_meshes_does_not_import_them(tmp_path):
+    """Start-up (issue 13: keep it low): VTK (~1 s), matplotlib and trimesh (~0.3 s) are imported
+    only by runs that write VTK files or previews or read meshes; a .vdb-only FRep run in a fresh
+    interpreter leaves them unloaded (and the .vdb is written)."""
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text("name: tiny\ndomain: {bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 8}\n"
+                   "model: {sphere: {radius: 0.5}}\nstages:\n  - voxelise: {band: 3}\n  - export: {vdb: true}\n")
+    args = ["run", str(cfg), "--out", str(tmp_path / "out")]
+    code = (f"import sys; from pipeline.cli import main; rc = main({args!r}); "
+            "print(rc, sorted(m for m in ('vtk', 'matplotlib', 'trimesh') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                       cwd=Path(__file__).resolve().parents[1])
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == "0 []", r.stdout
+    assert (tmp_path / "out" / "tiny" / "tiny.vdb").is_file()

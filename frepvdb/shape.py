@@ -22,6 +22,7 @@ from pydantic import ValidationError
 from pipeline.config import ConfigError, Domain, build_model, validation_problems
 from pipeline.nodes import REGISTRY, Node
 from pipeline.nodes.expr import FormulaError, parse_formula
+from pipeline.tape import compile_model, gradient_with
 
 SOURCE = "<python>"  # how a shape made in code is named in messages (a config names its file)
 
@@ -75,6 +76,19 @@ class Shape:
         if lo_a.ndim == 1:
             return float(flo[0]), float(fhi[0])
         return flo, fhi
+
+    def gradient(self, points: Any, t: float = 0.0) -> np.ndarray:
+        """Exact gradients of the field at points, forward mode over the compiled tape
+        (pipeline.tape.gradient_with; one-sided on creases): (N, 3) gives (N, 3), one point (3,)
+        gives (3,). A model the tape cannot hold (grid, hfrep, component, r0/sardf or ADF meshes)
+        raises TypeError."""
+        p = np.asarray(points, dtype=np.float64)
+        tape = compile_model(self.node(t=t), t)
+        if tape is None:
+            raise TypeError("this model has a node the compiled tape cannot hold (grid, hfrep, component, or a "
+                            "mesh other than a min_max BSP-field): no exact gradient")
+        g = gradient_with(tape, p.reshape(-1, 3))[1]
+        return g[0] if p.ndim == 1 else g.reshape(p.shape)
 
     def children(self) -> list[Shape]:
         out: list[Shape] = []

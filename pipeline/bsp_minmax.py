@@ -151,6 +151,64 @@ def point_value(px, py, pz, start, normals, offsets, pos, neg, mode, sj, sv):
 
 
 @njit(cache=True)
+def point_plane(px, py, pz, start, normals, offsets, pos, neg, mode, sj, sv):
+    """:func:`point_value` that also says where the value comes from: (value, node, sign), the
+    value being sign * (the plane of ``node`` at the point), exactly (min/max return one of their
+    operands). The field's gradient there is sign * normals[node] (one-sided on a crease, where
+    two planes give the same value). ``sj`` (4, D) int64, ``sv`` (2, D) float64: stack scratch."""
+    top = 0
+    sj[0, 0] = start
+    sj[1, 0] = 0
+    ret = 0.0
+    rj, rs = start, 1
+    while top >= 0:
+        j = sj[0, top]
+        s = sj[1, top]
+        m = mode[j]
+        if s == 0:
+            fa = offsets[j] + normals[j, 0] * px + normals[j, 1] * py + normals[j, 2] * pz
+            if m == LEAF:
+                ret, rj, rs = fa, j, 1
+                top -= 1
+                continue
+            sv[0, top] = fa
+            first_pos = _first_is_pos(m, fa)
+            top = _push(sj, top, 1 if first_pos else 2, pos[j] if first_pos else neg[j])
+            continue
+        fa = sv[0, top]
+        if s <= 2:
+            if m == POS_ONLY:
+                if fa < ret:
+                    ret, rj, rs = fa, j, 1
+            elif m == NEG_ONLY:
+                if fa > ret:
+                    ret, rj, rs = fa, j, 1
+            elif m >= MIN2 or not _decided(m, s, fa, fa, ret, ret):
+                sv[1, top] = ret
+                sj[2, top] = rj
+                sj[3, top] = rs
+                top = _push(sj, top, s + 2, neg[j] if s == 1 else pos[j])
+                continue
+            top -= 1
+            continue
+        if s == 3:
+            fb, bj, bs, fc, cj, cs = sv[1, top], sj[2, top], sj[3, top], ret, rj, rs
+        else:
+            fb, bj, bs, fc, cj, cs = ret, rj, rs, sv[1, top], sj[2, top], sj[3, top]
+        ret = _node(m, fa, fb, fc)
+        if ret == fb:
+            rj, rs = bj, bs
+        elif ret == fc:
+            rj, rs = cj, cs
+        elif ret == fa:
+            rj, rs = j, 1
+        else:
+            rj, rs = j, -1
+        top -= 1
+    return ret, rj, rs
+
+
+@njit(cache=True)
 def box_bound(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, neg, mode, pad, sj, sv):
     """(flo, fhi, start') over the box: the interval of the subtree at ``start`` (every interval
     widened by ``pad`` for rounding) and the box's start node (see the module docstring).

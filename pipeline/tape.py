@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from pipeline.bsp_minmax import box_bound, point_value, specialise_box, tree_depth
+from pipeline.bsp_minmax import box_bound, point_plane, point_value, specialise_box, tree_depth
 
 # --- opcodes ------------------------------------------------------------------------------------
 X, Y, Z, CONST, ADD, SUB, MUL, DIV, NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, MIN, MAX, R0AND, \
@@ -290,6 +290,13 @@ def evaluate_with(tape: Tape, points: np.ndarray) -> np.ndarray:
                        tape.b, tape.c, *tape.oracle.arrays())
 
 
+def gradient_with(tape: Tape, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Values (N,) and gradients (N, 3) of one tape at points (N, 3) (forward mode)."""
+    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    return eval_points_grad(p, np.zeros(1, np.int64), np.array([len(tape)]), np.array([tape.res]), tape.op, tape.a,
+                            tape.b, tape.c, *tape.oracle.arrays())
+
+
 def _compact(op, a, b, c, res):
     """Keep the clauses the result depends on (tracing may leave unused ones), renumbered."""
     n = len(op)
@@ -537,6 +544,124 @@ def eval_points(pts, start, length, res, op, a, b, c, orc, odepth):
                           none_i)
         out[lo:lo + m] = vals[:m]
     return out
+
+
+# --- gradients (forward mode) -------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _partials(op, va, vb, c, r):
+    """(d r / d a, d r / d b) of one clause with value r = op(va, vb): the forward-mode rule of
+    every opcode (one-sided where the clause has a crease: min / max / abs take the operand they
+    return; sardf inside its window is the C1 quadratic)."""
+    if op == ADD:
+        return 1.0, 1.0
+    if op == SUB:
+        return 1.0, -1.0
+    if op == MUL:
+        return vb, va
+    if op == DIV:  # Numba raises on a float division by zero: the undefined cases are NaN
+        return (1.0 / vb, -va / (vb * vb)) if vb != 0.0 else (math.nan, math.nan)
+    if op == NEG:
+        return -1.0, 0.0
+    if op == SQRT:
+        return (0.5 / r if r > 0.0 else math.inf), 0.0
+    if op == SQR:
+        return 2.0 * va, 0.0
+    if op == ABS:
+        return (1.0 if va > 0 else (-1.0 if va < 0 else 0.0)), 0.0
+    if op == EXP:
+        return r, 0.0
+    if op == LOG:
+        return (1.0 / va if va != 0.0 else math.inf), 0.0
+    if op == SIN:
+        return math.cos(va), 0.0
+    if op == COS:
+        return -math.sin(va), 0.0
+    if op == POWC:
+        return c * _powc(va, c - 1.0), 0.0
+    if op == MIN:
+        return (1.0, 0.0) if r == va else (0.0, 1.0)
+    if op == MAX:
+        return (1.0, 0.0) if r == va else (0.0, 1.0)
+    if op == R0AND:  # f1 + f2 - sqrt(f1^2 + f2^2) (eq. 2), in any of its algebraic forms
+        rho = math.hypot(va, vb)
+        return (1.0 - va / rho, 1.0 - vb / rho) if rho > 0 else (0.5, 0.5)
+    if op == SARDFAND:
+        rho = math.hypot(va, vb)
+        u = va - vb
+        w = c * rho
+        if abs(u) >= w:  # min outside the window
+            return (1.0, 0.0) if r == va else (0.0, 1.0)
+        e = 0.5 - u * u / (2.0 * w * w)  # d/dw of (u^2 + w^2) / (2 w), times dw/dfi = c fi / rho
+        return 0.5 * (1.0 - u / w - e * c * va / rho), 0.5 * (1.0 + u / w - e * c * vb / rho)
+    if op == COMPRESS:
+        a = abs(va)
+        return (1.0 if not a > c else c / a), 0.0
+    return 0.0, 0.0
+
+
+@njit(cache=True)
+def _grad_point(op, a, b, c, s, n, px, py, pz, v, g, orc, sj, sv):
+    """Values v[k] and gradients g[k] (d/dx, d/dy, d/dz) of every clause of the tape at s..s+n at
+    one point. A mesh clause's gradient is its deciding plane's normal (bsp_minmax.point_plane)
+    carried through its coordinate clauses (the chain rule over transforms)."""
+    for k in range(n):
+        o = op[s + k]
+        ck = c[s + k]
+        g[k, 0] = g[k, 1] = g[k, 2] = 0.0
+        if o == X:
+            v[k], g[k, 0] = px, 1.0
+            continue
+        if o == Y:
+            v[k], g[k, 1] = py, 1.0
+            continue
+        if o == Z:
+            v[k], g[k, 2] = pz, 1.0
+            continue
+        if o == CONST or o == BSPXY:  # noqa: SIM109 (plain compares in the kernel)
+            v[k] = ck
+            continue
+        ia, ib = a[s + k], b[s + k]
+        if o == BSP:
+            xa, ya = a[s + ia], b[s + ia]
+            val, j, sg = point_plane(v[xa], v[ya], v[ib], np.int64(ck), orc[0], orc[1], orc[2], orc[3], orc[4], sj,
+                                     sv)
+            v[k] = val
+            nx, ny, nz = sg * orc[0][j, 0], sg * orc[0][j, 1], sg * orc[0][j, 2]
+            for d in range(3):
+                g[k, d] = nx * g[xa, d] + ny * g[ya, d] + nz * g[ib, d]
+            continue
+        va = v[ia]
+        vb = v[ib] if ib >= 0 else 0.0
+        r = _apply(o, va, vb, ck)
+        v[k] = r
+        da, db = _partials(o, va, vb, ck, r)
+        for d in range(3):  # 0 * inf is 0 here: an operand that does not vary adds nothing
+            ga = da * g[ia, d] if g[ia, d] != 0.0 else 0.0
+            gb = db * g[ib, d] if ib >= 0 and g[ib, d] != 0.0 else 0.0
+            g[k, d] = ga + gb
+
+
+@njit(parallel=True, cache=True)
+def eval_points_grad(pts, start, length, res, op, a, b, c, orc, odepth):
+    """Values (N,) and gradients (N, 3) of tape 0 at points (N, 3), forward mode (exact where the
+    model is differentiable; one-sided on creases)."""
+    n = pts.shape[0]
+    val = np.empty(n)
+    grad = np.empty((n, 3))
+    ln = length[0]
+    nb = (n + 255) // 256
+    for q in prange(nb):
+        v = np.empty(max(ln, 1))
+        g = np.empty((max(ln, 1), 3))
+        sj = np.empty((4, odepth + 2), np.int64)
+        sv = np.empty((2, odepth + 2))
+        for i in range(q * 256, min(n, (q + 1) * 256)):
+            _grad_point(op, a, b, c, start[0], ln, pts[i, 0], pts[i, 1], pts[i, 2], v, g, orc, sj, sv)
+            val[i] = v[res[0]]
+            grad[i, 0], grad[i, 1], grad[i, 2] = g[res[0], 0], g[res[0], 1], g[res[0], 2]
+    return val, grad
 
 
 # --- interval bounds --------------------------------------------------------------------------------

@@ -203,6 +203,10 @@ def cmd_run(args) -> int:
     except ConfigError as e:
         _print_problems(e)
         return EXIT_INPUT
+    for j in jobs:  # the model's warnings before the run (a slow rfunc is worth knowing before it starts)
+        for n in j.model.walk():
+            for w in getattr(n, "warnings", []):
+                print(f"warning: {j.name}: {n.where}: {w}", file=sys.stderr)
     conf = next((j.executor for j in jobs if j.executor is not None), None)
     kind = args.executor or (conf.kind if conf else "local")
     workers = args.workers or (conf.workers if conf else None)

@@ -128,3 +128,26 @@ def test_open_mesh_is_exit_2_unless_allowed(tmp_path, capsys):
 
     man = json.loads((tmp_path / "out" / "o" / "manifest.json").read_text())
     assert any("not closed" in w for w in man["warnings"]) and man["meshes"][0]["watertight"] is False
+
+
+def test_slow_rfunc_on_a_large_mesh_is_warned_before_the_run(tmp_path, capsys) -> None:
+    """r0 / sardf evaluate every BSP node at every voxel: a tree above SLOW_TREE nodes gets a
+    warning on stderr before the run starts and in the manifest; min_max gets none."""
+    import json
+
+    import trimesh
+
+    from pipeline.cli import main
+
+    path = tmp_path / "ico.off"
+    trimesh.creation.icosphere(4, 0.8).export(str(path))  # 5,120 faces: ~10k nodes
+    for rfunc, warned in (("r0", True), ("min_max", False)):
+        cfg = tmp_path / f"{rfunc}.yaml"
+        cfg.write_text(f"name: {rfunc}\ndomain: {{bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 8}}\n"
+                       f"model: {{mesh: {{path: {path}, rfunc: {rfunc}}}}}\nstages:\n  - voxelise: {{band: 3}}\n"
+                       "  - export: {vdb: true}\n")
+        assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+        err = capsys.readouterr().err
+        manifest = json.loads((tmp_path / "out" / rfunc / "manifest.json").read_text())
+        said = [w for w in manifest["warnings"] if "evaluates all" in w]
+        assert bool(said) == warned and (f"rfunc {rfunc} evaluates all" in err) == warned, (err, said)

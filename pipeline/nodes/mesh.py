@@ -54,6 +54,12 @@ class Mesh(Node):
 
             self.impl = BSPField.from_mesh(mesh, rfunc=params.rfunc, planes=params.planes, seed=params.seed)
             self.stats = dict(self.impl.stats)
+            nodes = self.stats["nodes"]
+            if params.rfunc != "min_max" and nodes > SLOW_TREE:
+                self.warnings.append(
+                    f"{params.path}: rfunc {params.rfunc} evaluates all {nodes:,} nodes of the BSP-tree at every "
+                    "voxel (minutes to hours at 256^3 for a tree this size); rfunc: min_max has the same zero set "
+                    "and sign and evaluates only the nodes near each voxel (docs/performance.md)")
         else:
             from pipeline.adf import ADFField
 
@@ -114,6 +120,9 @@ class Mesh(Node):
                 "winding_consistent": r.winding_consistent, "degenerate_faces": r.degenerate_faces,
                 "winding_repaired": getattr(r, "winding_repaired", 0),
                 "components": r.components, "genus": r.genus, "tree": self.stats}
+
+
+SLOW_TREE = 5000  # BSP nodes above which an r0 / sardf mesh field gets a warning about its cost
 
 
 def _same_orientation(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -363,3 +363,40 @@ def assert_bound_encloses(field, lo, hi, rng, samples: int) -> None:
     for i in range(len(lo)):
         v = field.evaluate(lo[i] + rng.random((samples, lo.shape[1])) * (hi[i] - lo[i]))
         assert flo[i] <= v.min() and v.max() <= fhi[i]
+
+
+def _highs_margin(a: np.ndarray, b: np.ndarray) -> float:
+    """max t s.t. a x + t <= b (rows), t <= 1, x free: the margin by scipy's HiGHS."""
+    from scipy.optimize import linprog
+
+    d = a.shape[1]
+    r = linprog(np.r_[np.zeros(d), -1.0], A_ub=np.c_[a, np.ones(len(a))], b_ub=b,
+                bounds=[(None, None)] * d + [(None, 1.0)], method="highs")
+    assert r.status == 0
+    return -r.fun
+
+
+def test_compiled_margin_agrees_with_highs() -> None:
+    """pipeline.small_lp.max_margin (the special cases' interior LPs, section 3.2): the optimum
+    equals HiGHS's to 1e-7 on random halfspace sets of 4-40 planes, on boxes touching a
+    halfspace (margin 0) and on repeated planes (degenerate); so its decision (margin > tol) is
+    HiGHS's wherever the margin is not within HiGHS's own tolerance of the threshold."""
+    from pipeline.small_lp import max_margin
+
+    rng = np.random.default_rng(7)
+    cases = []
+    for _ in range(300):
+        m = int(rng.integers(4, 41))
+        n = rng.normal(size=(m, 3))
+        n /= np.linalg.norm(n, axis=1)[:, None]
+        cases.append((n, rng.uniform(-0.5, 1.0, m)))  # a x <= b with a = n: often bounded, sometimes empty
+    box = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    for _ in range(50):  # a unit box and a halfspace touching one of its faces or cutting it
+        k = int(rng.integers(6))
+        cut = rng.choice([0.0, 0.3, -0.2])
+        cases.append((np.r_[box, -box[k:k + 1]], np.r_[np.full(6, 0.5), [-0.5 + cut]]))
+        cases.append((np.r_[box, box, box[k:k + 1]], np.r_[np.full(12, 0.5), [0.5]]))  # repeated planes
+    for a, b in cases:
+        t = max_margin(np.ascontiguousarray(a), np.ascontiguousarray(b))
+        assert np.isfinite(t)
+        assert abs(t - _highs_margin(a, b)) < 1e-7, (t, _highs_margin(a, b))

@@ -181,6 +181,7 @@ def cmd_run(args) -> int:
     from pipeline.batch import make_executor, run_batch
     from pipeline.config import load_jobs
     from pipeline.progress import BatchProgress
+    from pipeline.runner import model_warnings
 
     status = EXIT_OK
     jobs = []
@@ -204,9 +205,8 @@ def cmd_run(args) -> int:
         _print_problems(e)
         return EXIT_INPUT
     for j in jobs:  # the model's warnings before the run (a slow rfunc is worth knowing before it starts)
-        for n in j.model.walk():
-            for w in getattr(n, "warnings", []):
-                print(f"warning: {j.name}: {n.where}: {w}", file=sys.stderr)
+        for w in model_warnings(j):
+            print(f"warning: {j.name}: {w}", file=sys.stderr)
     conf = next((j.executor for j in jobs if j.executor is not None), None)
     kind = args.executor or (conf.kind if conf else "local")
     workers = args.workers or (conf.workers if conf else None)

@@ -126,7 +126,7 @@ def _manifest(ctx: JobContext, records: list[dict]) -> dict:
         "outputs": ctx.outputs + [{"path": "manifest.json", "kind": "manifest"}],
         "grids": {name: grid_stats(g, job.domain.voxel_size) for name, g in ctx.grids.items()},
         "stages": records,
-        "warnings": _model_warnings(job) + ctx.warnings,
+        "warnings": model_warnings(job) + ctx.warnings,
     }
     meshes = [n.describe() for n in job.model.walk() if hasattr(n, "describe")]
     if meshes:
@@ -137,7 +137,7 @@ def _manifest(ctx: JobContext, records: list[dict]) -> dict:
     return m
 
 
-def _model_warnings(job: Job) -> list[str]:
+def model_warnings(job: Job) -> list[str]:
     """Warnings raised while building the model (e.g. a mesh that is not closed)."""
     return [f"{n.where}: {w}" for n in job.model.walk() for w in getattr(n, "warnings", [])]
 

@@ -485,8 +485,10 @@ def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, orc
     m = block * block * block
     out = np.empty((n, block, block, block))
     nn = max(orc[0].shape[0], 1)
-    per = 16
-    for ch in prange((n + per - 1) // per):  # scratch once per chunk of blocks
+    # scratch once per chunk of blocks; at most 64 chunks, since a mesh's scratch tree has room
+    # for its whole tree (150 MB for 1.3M faces) and must not be allocated per few blocks
+    per = max(16, (n + 63) // 64)
+    for ch in prange((n + per - 1) // per):
         reg = np.empty((max(maxlen, 1), m))
         sj = np.empty((3, odepth + 2), np.int64)
         sv = np.empty((4, odepth + 2))

@@ -40,11 +40,16 @@ from pipeline.bsp_minmax import box_bound, point_plane, point_value, specialise_
 
 # --- opcodes ------------------------------------------------------------------------------------
 X, Y, Z, CONST, ADD, SUB, MUL, DIV, NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, MIN, MAX, R0AND, \
-    SARDFAND, COMPRESS, BSPXY, BSP = range(24)
+    SARDFAND, COMPRESS, BSPXY, BSP, ADDC, MULC, RSUBC, DIVC, RDIVC = range(29)
 NAMES = ["x", "y", "z", "const", "add", "sub", "mul", "div", "neg", "sqrt", "sqr", "abs", "exp", "log", "sin",
-         "cos", "powc", "min", "max", "r0and", "sardfand", "compress", "bspxy", "bsp"]
+         "cos", "powc", "min", "max", "r0and", "sardfand", "compress", "bspxy", "bsp", "addc", "mulc", "rsubc",
+         "divc", "rdivc"]
 ORACLES = {BSPXY, BSP}  # never folded: their value needs the oracle arrays
-UNARY = {NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, COMPRESS}
+# the arithmetic of one operand and the clause's constant c (a + c, a * c, c - a, a / c, c / a): a
+# constant operand is not a clause of its own, so a sphere is 11 clauses, not 15 (Fidget's
+# register-immediate opcodes do the same)
+IMMEDIATE = {ADDC, MULC, RSUBC, DIVC, RDIVC}
+UNARY = {NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, COMPRESS} | IMMEDIATE
 
 
 class NotTraceable(TypeError):
@@ -92,6 +97,13 @@ class TapeBuilder:
     def emit(self, op: int, a: int = -1, b: int = -1, c: float = 0.0) -> Sym:
         if op == NEG and self.op[a] == NEG:  # -(-v) is v: unions -min(-a, -b) then chain into one min tree
             return Sym(self, self.a[a])
+        if op in (MIN, MAX) and a >= 0 and b >= 0 and self.op[a] == NEG and self.op[b] == NEG:
+            # min(-a, -b) is -max(a, b) exactly: a min_max union (-min(-a, -b)) becomes a max tree
+            # with no negation per part
+            return self.emit(NEG, self.emit(MAX if op == MIN else MIN, self.a[a], self.a[b]).pos)
+        imm = self._immediate(op, a, b)
+        if imm is not None:
+            op, a, b, c = imm
         if op in (MIN, MAX) and a == b:  # min(v, v) is v (a part given twice)
             return Sym(self, a)
         if op in (ADD, MUL, MIN, MAX, R0AND) and a > b:  # commutative: one key for both orders
@@ -109,6 +121,20 @@ class TapeBuilder:
             self.c.append(c)
             self.memo[key] = pos
         return Sym(self, pos)
+
+    def _immediate(self, op: int, a: int, b: int) -> tuple[int, int, int, float] | None:
+        """(op, a, -1, c) of an arithmetic clause with exactly one constant operand, else None
+        (a - k is a + (-k) to the bit in IEEE arithmetic; both constants: folded later)."""
+        if op not in (ADD, SUB, MUL, DIV) or a < 0 or b < 0:
+            return None
+        ka, kb = self.op[a] == CONST, self.op[b] == CONST
+        if ka == kb:
+            return None
+        if kb:
+            k = self.c[b]
+            return {ADD: (ADDC, a, -1, k), SUB: (ADDC, a, -1, -k), MUL: (MULC, a, -1, k), DIV: (DIVC, a, -1, k)}[op]
+        k = self.c[a]
+        return {ADD: (ADDC, b, -1, k), SUB: (RSUBC, b, -1, k), MUL: (MULC, b, -1, k), DIV: (RDIVC, b, -1, k)}[op]
 
     def const(self, v: float) -> Sym:
         v = float(v)
@@ -344,6 +370,14 @@ def _powc(v, p):
     return v ** p
 
 
+@njit(cache=True, inline="always")
+def _div(va, vb):
+    """va / vb with NumPy's IEEE results where Numba would raise (division by zero)."""
+    if vb == 0.0:
+        return math.nan if va == 0.0 or va != va else math.copysign(math.inf, va) * math.copysign(1.0, vb)
+    return va / vb
+
+
 @njit(cache=True)
 def _apply(op, va, vb, c):
     """The value of one clause (twin of numpy's semantics in pipeline.ops / rfunctions)."""
@@ -354,9 +388,17 @@ def _apply(op, va, vb, c):
     if op == MUL:
         return va * vb
     if op == DIV:
-        if vb == 0.0:
-            return math.nan if va == 0.0 or va != va else math.copysign(math.inf, va) * math.copysign(1.0, vb)
-        return va / vb
+        return _div(va, vb)
+    if op == ADDC:
+        return va + c
+    if op == MULC:
+        return va * c
+    if op == RSUBC:
+        return c - va
+    if op == DIVC:
+        return _div(va, c)
+    if op == RDIVC:
+        return _div(c, va)
     if op == NEG:
         return -va
     if op == SQRT:
@@ -462,6 +504,15 @@ def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m, orc, sj, sv, spec, cn
         elif o == NEG:
             for v in range(m):
                 reg[k, v] = -reg[ia, v]
+        elif o == ADDC:
+            for v in range(m):
+                reg[k, v] = reg[ia, v] + ck
+        elif o == MULC:
+            for v in range(m):
+                reg[k, v] = reg[ia, v] * ck
+        elif o == RSUBC:
+            for v in range(m):
+                reg[k, v] = ck - reg[ia, v]
         elif o == MIN:
             for v in range(m):
                 reg[k, v] = _apply(MIN, reg[ia, v], reg[ib, v], ck)
@@ -564,6 +615,16 @@ def _partials(op, va, vb, c, r):
         return vb, va
     if op == DIV:  # Numba raises on a float division by zero: the undefined cases are NaN
         return (1.0 / vb, -va / (vb * vb)) if vb != 0.0 else (math.nan, math.nan)
+    if op == ADDC:
+        return 1.0, 0.0
+    if op == MULC:
+        return c, 0.0
+    if op == RSUBC:
+        return -1.0, 0.0
+    if op == DIVC:
+        return (1.0 / c if c != 0.0 else math.nan), 0.0
+    if op == RDIVC:
+        return (-c / (va * va) if va != 0.0 else math.nan), 0.0
     if op == NEG:
         return -1.0, 0.0
     if op == SQRT:
@@ -720,6 +781,25 @@ def _interval(o, alo, ahi, blo, bhi, c):
             return -math.inf, math.inf, 0
         p1, p2, p3, p4 = alo / blo, alo / bhi, ahi / blo, ahi / bhi
         return min(min(p1, p2), min(p3, p4)), max(max(p1, p2), max(p3, p4)), 0
+    if o == ADDC:
+        return alo + c, ahi + c, 0
+    if o == RSUBC:
+        return c - ahi, c - alo, 0
+    if o == MULC:
+        p1, p2 = alo * c, ahi * c
+        if p1 != p1 or p2 != p2:  # 0 * inf
+            return -math.inf, math.inf, 0
+        return min(p1, p2), max(p1, p2), 0
+    if o == DIVC:
+        if c == 0.0:
+            return -math.inf, math.inf, 0
+        p1, p2 = alo / c, ahi / c
+        return min(p1, p2), max(p1, p2), 0
+    if o == RDIVC:
+        if alo <= 0.0 <= ahi:
+            return -math.inf, math.inf, 0
+        p1, p2 = c / alo, c / ahi
+        return min(p1, p2), max(p1, p2), 0
     if o == NEG:
         return -ahi, -alo, 0
     if o == SQRT:

@@ -30,6 +30,9 @@ NODES = {
     "halfspace": "halfspace: {normal: [0.3, 0.4, 0.866], offset: 0.1}",
     "blobby": "blobby: {blobs: [{center: [0, 0, 0], radius: 0.5}, {center: [0.4, 0, 0], radius: 0.4}]}",
     "expr": 'expr: "1 - x^2 - y^2 - z^2 + 0.2 * sin(7 * x) * cos(5 * y) - exp(-z) / 9 + log(2 + x)"',
+    # one constant operand: the immediate opcodes (a + c, a * c, c - a, a / c, c / a), division by
+    # zero included (x / 0 at x = 0 is NaN, 1 / x at x = 0 is inf: the node evaluator's results)
+    "expr_immediates": 'expr: "(3 - x) / (1.5 + y) + 2 * z - 0.5 / (x - 0.3) + x / 0.7 - y * 0 + 1 / (z + 0.2) + 4"',
     "union_min_max": "union: {of: [{sphere: {radius: 0.4}}, {box: {min: [0, 0, 0], max: [0.7, 0.7, 0.7]}}], rfunc: min_max}",
     "intersection_r0": "intersection: {of: [{sphere: {radius: 0.7}}, {box: {min: [-0.5, -0.5, -0.5], max: [0.5, 0.5, 0.5]}}], rfunc: r0}",
     "difference_sardf": "difference: {of: [{sphere: {radius: 0.7}}, {cylinder: {radius: 0.2}}], rfunc: sardf}",

@@ -121,11 +121,17 @@ def enumerate_cells_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: floa
         lo, hi = _clip_boxes(cells, size, imin, imax)
         flo, fhi, _ = _bound_level(pool, tape_of, lo * h - pad, hi * h + pad)  # culling: the dilated box
         keep = _cull_level(out, st, cells, size, flo, fhi, progress)
-        # the shortened tape must hold on the cell itself only (its voxels and its children), so it
-        # is decided on the undilated box: much shorter tapes than the band-dilated one gives
-        k_of = tape_of[keep]
-        _, _, (choff, choices) = _bound_level(pool, k_of, (lo[keep] - 0.5) * h, (hi[keep] + 0.5) * h)
-        pool = pool.with_arrays(specialise(np.arange(len(keep), dtype=np.int64), k_of, *pool.arrays(), choff, choices))
+        # The shortened tape of a cell is decided on a smaller box (much shorter tapes than the
+        # band-dilated one gives). A block's tape is only evaluated at its own voxel centres (all
+        # of them, those past the domain's edge too: the band's stencil reads them). Above, the
+        # cell's box grown by one voxel: the tape is then the model itself at every voxel of the
+        # cell and at their neighbours, so a child holding one side of a sign change between
+        # neighbouring voxels always has its zero inside its dilated box and is never culled
+        # (the band is closed by construction; a tape decided on the cell alone could hide it).
+        k_of, keep_of = tape_of[keep], np.arange(len(keep), dtype=np.int64)
+        grow = 0 if size <= block else 1
+        _, _, (choff, choices) = _bound_level(pool, k_of, (cells[keep] - grow) * h, (cells[keep] + size - 1 + grow) * h)
+        pool = pool.with_arrays(specialise(keep_of, k_of, *pool.arrays(), choff, choices))
         st["levels"][-1]["mean_tape"] = round(float(pool.length.mean()), 2) if len(keep) else 0.0
         amb = cells[keep]
         if size <= block:

@@ -36,7 +36,15 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from pipeline.bsp_minmax import box_bound, point_plane, point_value, specialise_box, tree_depth
+from pipeline.bsp_minmax import (
+    BLOCK_TREE_MAX,
+    block_values,
+    box_bound,
+    point_plane,
+    point_value,
+    specialise_box,
+    tree_depth,
+)
 
 # --- opcodes ------------------------------------------------------------------------------------
 X, Y, Z, CONST, ADD, SUB, MUL, DIV, NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, MIN, MAX, R0AND, \
@@ -461,12 +469,13 @@ def _specialise_batch(x, y, z, m, st, orc, sj, sv, cn, co, cp, cq, cm):
 
 
 @njit(cache=True)
-def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m, orc, sj, sv, spec, cn, co, cp, cq, cm):
+def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m, orc, sj, sv, spec, cn, co, cp, cq, cm, treg, tfa):
     """Clause-major: each clause runs over the m points of the batch (the dispatch on the
     opcode is paid once per clause, the inner loops are plain arithmetic). With ``spec`` (the
     points of a voxel block: close together) a mesh clause first specialises its BSP-tree to
     the bounding box of the batch's own coordinates (exact, bsp_minmax.specialise_box) into the
-    scratch tree (cn, co, cp, cq, cm), then runs the points on that."""
+    scratch tree (cn, co, cp, cq, cm), then runs the points on that: tree-major
+    (bsp_minmax.block_values, registers ``treg``, ``tfa``) when it fits, else point by point."""
     for k in range(n):
         o = op[s + k]
         ck = c[s + k]
@@ -487,6 +496,9 @@ def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m, orc, sj, sv, spec, cn
             xa, ya, st = a[s + ia], b[s + ia], np.int64(ck)
             if spec and m > 1:
                 root = _specialise_batch(reg[xa], reg[ya], reg[ib], m, st, orc, sj, sv, cn, co, cp, cq, cm)
+                if 0 <= root < treg.shape[0]:
+                    block_values(reg[xa], reg[ya], reg[ib], m, root, cn, co, cp, cq, cm, treg, tfa, reg[k])
+                    continue
                 if root >= 0:
                     for v in range(m):
                         reg[k, v] = point_value(reg[xa, v], reg[ya, v], reg[ib, v], root, cn, co, cp, cq, cm, sj,
@@ -557,15 +569,17 @@ def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, orc
         px = np.empty(m)
         py = np.empty(m)
         pz = np.empty(m)
+        treg = np.empty((min(nn, BLOCK_TREE_MAX) if orc[0].shape[0] else 0, m))  # tree-major mesh registers
+        tfa = np.empty(m)
         for q in range(ch * per, min(n, (ch + 1) * per)):
             _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c, orc, reg, sj, sv, cn, co,
-                          cp, cq, cm, px, py, pz, out)
+                          cp, cq, cm, px, py, pz, out, treg, tfa)
     return out
 
 
 @njit(cache=True)
 def _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c, orc, reg, sj, sv, cn, co, cp, cq,
-                  cm, px, py, pz, out):
+                  cm, px, py, pz, out, treg, tfa):
     """Values of block q's voxel centres into out[q]."""
     m = block * block * block
     v = 0
@@ -578,7 +592,7 @@ def _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c
                 v += 1
     tp = tape_of[q]
     vals = _run_batch(op, a, b, c, start[tp], length[tp], res[tp], px, py, pz, reg, m, orc, sj, sv, True, cn,
-                      co, cp, cq, cm)
+                      co, cp, cq, cm, treg, tfa)
     v = 0
     for i in range(block):
         for j in range(block):
@@ -598,12 +612,12 @@ def eval_points(pts, start, length, res, op, a, b, c, orc, odepth):
         reg = np.empty((max(ln, 1), 64))
         sj = np.empty((2, odepth + 2), np.int64)
         sv = np.empty((2, odepth + 2))
-        none_n, none_f, none_i = np.empty((0, 3)), np.empty(0), np.empty(0, np.int64)
+        none_n, none_f, none_i, none_r = np.empty((0, 3)), np.empty(0), np.empty(0, np.int64), np.empty((0, 64))
         lo = q * 64
         m = min(64, n - lo)
         vals = _run_batch(op, a, b, c, start[0], ln, res[0], pts[lo:lo + m, 0].copy(), pts[lo:lo + m, 1].copy(),
                           pts[lo:lo + m, 2].copy(), reg, m, orc, sj, sv, False, none_n, none_f, none_i, none_i,
-                          none_i)
+                          none_i, none_r, none_f)
         out[lo:lo + m] = vals[:m]
     return out
 

@@ -71,6 +71,13 @@ class Node(ABC):
         self.params = params
         self.where = where  # YAML path of this node, for error messages
 
+    def __getstate__(self) -> dict:
+        # the compiled tapes pipeline.tape.compile_model keeps on the model are not sent to
+        # workers (a mesh's tape holds its whole BSP-tree again); a worker traces its own
+        state = self.__dict__.copy()
+        state.pop("_tapes", None)
+        return state
+
     # --- the one formula ------------------------------------------------------------------
     @abstractmethod
     def field(self, x: Any, y: Any, z: Any, t: float) -> Any:

@@ -268,3 +268,17 @@ def test_block_specialised_mesh_tree_is_exact(tmp_path, seed, h) -> None:
         live += 1
         stack += [int(x) for x in (scratch[2][j], scratch[3][j]) if x >= 0]
     assert live < nn / 4, (live, nn)
+
+
+def test_tape_is_traced_once_per_model_and_not_pickled(tmp_path) -> None:
+    """compile_model keeps the tape on the model (voxelise, bricks and components share it);
+    a pickled model (sent to a worker) leaves it behind and traces its own, equal one."""
+    import pickle
+
+    job = job_of(tmp_path, NODES["union_min_max"])
+    tp = pt.compile_model(job.model, job.t)
+    assert pt.compile_model(job.model, job.t) is tp
+    copy = pickle.loads(pickle.dumps(job.model))
+    assert "_tapes" not in vars(copy)
+    again = pt.compile_model(copy, job.t)
+    assert again is not tp and np.array_equal(again.op, tp.op) and np.array_equal(again.c, tp.c)

@@ -608,15 +608,25 @@ def detect(model: Node, origin, size: float, depth: int, t: float = 0.0,
 def truncate(tree: Octree, level: int) -> Octree:
     """The octree without the cells below ``level``: their ancestors at ``level`` become border
     cells (Algorithm 2, "remove the cells of the level")."""
+    return _truncate(tree, level)[0]
+
+
+def _truncate(tree: Octree, level: int) -> tuple[Octree, np.ndarray]:
+    """:func:`truncate`, and the row of every cell of ``tree`` in the truncated tree (itself, or
+    its ancestor at ``level``)."""
     deep = tree.level > level
-    anc = _unique_rows(tree.coords[deep] >> (tree.level[deep] - level)[:, None])
+    keys, inv = np.unique(pack(tree.coords[deep] >> (tree.level[deep] - level)[:, None]), return_inverse=True)
+    anc = unpack(keys) if len(keys) else np.zeros((0, 3), np.int64)
     keep = ~deep
-    n = len(anc)
+    nk, n = int(np.count_nonzero(keep)), len(anc)
+    rows = np.empty(len(tree), np.int64)
+    rows[keep] = np.arange(nk)
+    rows[deep] = nk + inv.reshape(-1)
     return Octree(tree.origin, tree.size, level,
                   np.concatenate([tree.level[keep], np.full(n, level)]),
                   np.concatenate([tree.coords[keep], anc]),
                   np.concatenate([tree.kind[keep], np.full(n, BORDER, np.int8)]),
-                  np.concatenate([tree.pos_frac[keep], np.full(n, 0.5)]), dict(tree.stats))
+                  np.concatenate([tree.pos_frac[keep], np.full(n, 0.5)]), dict(tree.stats)), rows
 
 
 def coarsest_same_count(comp: Components) -> tuple[Components, dict[int, int]]:
@@ -625,14 +635,25 @@ def coarsest_same_count(comp: Components) -> tuple[Components, dict[int, int]]:
     since coarsening only merges and the count is unchanged)."""
     best, mapping = comp, {k: k for k in range(1, comp.count + 1)}
     for lv in range(comp.tree.depth - 1, -1, -1):
-        cand = label_cells(truncate(comp.tree, lv))
+        tree, rows = _truncate(comp.tree, lv)  # rows: every cell's own or ancestor's row there
+        cand = label_cells(tree)
         if cand.count != comp.count:
             break
-        lo, hi = comp.tree.boxes()
-        rows = cand.tree.locate(0.5 * (lo + hi))  # a cell's centre lies in itself or its ancestor
-        pairs = np.unique(np.stack([comp.labels, cand.labels[rows]], axis=1), axis=0)
-        best, mapping = cand, {int(a): int(b) for a, b in pairs}
+        best, mapping = cand, _label_map(comp.labels, cand.labels[rows])
     return best, mapping
+
+
+def _label_map(a: np.ndarray, b: np.ndarray) -> dict[int, int]:
+    """{a_i: b_i} of two label arrays over the same cells, a -> b being a function (one b per a):
+    by scatter and check, not by a row-wise np.unique (a structured sort: 2 s of the demo's
+    components at 512^3). Pairs that are not a function keep every pair, as np.unique gave."""
+    m = np.full(int(a.max(initial=0)) + 1, -1, np.int64)
+    m[a] = b
+    if not np.array_equal(m[a], b):
+        return {int(x): int(y) for x, y in np.unique(np.stack([a, b], axis=1), axis=0)}
+    present = np.zeros(len(m), bool)
+    present[a] = True
+    return {int(k): int(m[k]) for k in np.flatnonzero(present)}
 
 
 # --- labels on arbitrary points (the VDB topology) ----------------------------------------------------

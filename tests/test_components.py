@@ -137,6 +137,14 @@ def test_algorithm2_coarsest_level_keeps_the_count():
     assert cc.label_cells(cc.truncate(found.tree, coarse.tree.depth - 1)).count != 2
     assert sorted(mapping.values()) == [1, 2]
     assert len(coarse.tree) < len(found.tree)
+    # every cell's row in a truncated tree is the cell holding its centre (itself or its ancestor)
+    for lv in range(found.tree.depth + 1):
+        tree, rows = cc._truncate(found.tree, lv)
+        lo, hi = found.tree.boxes()
+        np.testing.assert_array_equal(rows, tree.locate(0.5 * (lo + hi)))
+    # the label map of two labellings: scatter when it is a function, every pair when not
+    assert cc._label_map(np.array([1, 2, 2, 0]), np.array([5, 7, 7, 0])) == {0: 0, 1: 5, 2: 7}
+    assert cc._label_map(np.array([1, 1]), np.array([3, 4])) == {1: 4}
 
 
 def test_solid_noise_matches_dense_label_at_the_same_tolerance():

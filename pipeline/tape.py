@@ -923,6 +923,44 @@ def bound_boxes(lo, hi, tape_of, start, length, res, op, a, b, c, orc, odepth, m
     return flo, fhi
 
 
+@njit(parallel=True, cache=True)
+def bound_cull_decide(lo, hi, dlo, dhi, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen, choff,
+                      choices):
+    """One pass of a descent level: the interval (flo, fhi) of box q's tape over its culling box
+    [lo_q, hi_q] and, for every box not culled by it (neither flo > 0 nor fhi < 0), the
+    decisions of its clauses over its (smaller) decision box [dlo_q, dhi_q] into
+    ``choices[choff[q]:]``, as :func:`bound_boxes` records them. A mesh clause's walk over the
+    decision box starts from the node the culling walk reached when the decision box lies in
+    the culling box (that node's field is the mesh's there), else from its own start node."""
+    nbox = lo.shape[0]
+    flo = np.empty(nbox)
+    fhi = np.empty(nbox)
+    per = 64 if nbox >= 1024 else 1
+    for ch in prange((nbox + per - 1) // per):
+        rlo = np.empty(maxlen)
+        rhi = np.empty(maxlen)
+        tlo = np.empty(maxlen)
+        thi = np.empty(maxlen)
+        sj = np.empty((3, odepth + 2), np.int64)
+        sv = np.empty((4, odepth + 2))
+        for q in range(ch * per, min(nbox, (ch + 1) * per)):
+            tp = tape_of[q]
+            s, ln, ch0 = start[tp], length[tp], choff[q]
+            _bound_one(lo[q], hi[q], s, ln, op, a, b, c, rlo, rhi, choices, ch0, orc, sj, sv)
+            flo[q] = rlo[res[tp]]
+            fhi[q] = rhi[res[tp]]
+            if flo[q] > 0 or fhi[q] < 0:
+                continue
+            inner = True
+            for d in range(3):
+                inner = inner and lo[q, d] <= dlo[q, d] and dhi[q, d] <= hi[q, d]
+            if not inner:
+                choices[ch0:ch0 + ln] = 0
+            _bound_one(dlo[q], dhi[q], s, ln, op, a, b, c, rlo, rhi, choices, ch0, orc, sj, sv)
+            _relevance(op, a, s, ln, res[tp], b, rlo, rhi, choices, ch0, tlo, thi)
+    return flo, fhi
+
+
 @njit(cache=True)
 def _bound_one(lo, hi, s, ln, op, a, b, c, rlo, rhi, choices, ch0, orc, sj, sv):
     for k in range(ln):
@@ -954,7 +992,9 @@ def _bound_bsp(k, s, a, b, c, rlo, rhi, choices, ch0, orc, sj, sv):
     ia, ib = a[s + k], b[s + k]
     xa, ya = a[s + ia], b[s + ia]
     lo0, hi0, lo1, hi1, lo2, hi2 = rlo[xa], rhi[xa], rlo[ya], rhi[ya], rlo[ib], rhi[ib]
-    st = np.int64(c[s + k])
+    # a node recorded by an earlier walk over a box holding this one (bound_cull_decide), else
+    # the clause's own start node
+    st = np.int64(choices[ch0 + k] - 3) if choices[ch0 + k] >= 3 else np.int64(c[s + k])
     if not (math.isfinite(lo0) and math.isfinite(hi0) and math.isfinite(lo1) and math.isfinite(hi1)
             and math.isfinite(lo2) and math.isfinite(hi2)):
         rlo[k], rhi[k] = -math.inf, math.inf

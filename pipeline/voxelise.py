@@ -27,13 +27,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 from numba import njit
 
 from pipeline.grid import LEAF, LEAF_LOG2, BlockGrid, pack_keys
 from pipeline.nodes import Node
-from pipeline.tape import Oracle, Tape, bound_boxes, compile_model, eval_blocks, specialise
+from pipeline.tape import Oracle, Tape, bound_boxes, bound_cull_decide, compile_model, eval_blocks, specialise
 
 BOUND_CHUNK = 200_000  # boxes per affine call at most (memory ~ 100 bytes x ops x boxes)
 EVAL_CHUNK = 1 << 20  # points per evaluation call at most
@@ -119,19 +120,19 @@ def enumerate_cells_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: floa
           "tape_clauses": int(len(tape))}
     while len(cells):
         lo, hi = _clip_boxes(cells, size, imin, imax)
-        flo, fhi, _ = _bound_level(pool, tape_of, lo * h - pad, hi * h + pad)  # culling: the dilated box
-        keep = _cull_level(out, st, cells, size, flo, fhi, progress)
-        # The shortened tape of a cell is decided on a smaller box (much shorter tapes than the
-        # band-dilated one gives). A block's tape is only evaluated at its own voxel centres (all
-        # of them, those past the domain's edge too: the band's stencil reads them). Above, the
-        # cell's box grown by one voxel: the tape is then the model itself at every voxel of the
-        # cell and at their neighbours, so a child holding one side of a sign change between
-        # neighbouring voxels always has its zero inside its dilated box and is never culled
-        # (the band is closed by construction; a tape decided on the cell alone could hide it).
-        k_of, keep_of = tape_of[keep], np.arange(len(keep), dtype=np.int64)
+        # Culling: the box dilated by the band. The shortened tape of a cell is decided on a
+        # smaller box (much shorter tapes than the band-dilated one gives). A block's tape is only
+        # evaluated at its own voxel centres (all of them, those past the domain's edge too: the
+        # band's stencil reads them). Above, the cell's box grown by one voxel: the tape is then
+        # the model itself at every voxel of the cell and at their neighbours, so a child holding
+        # one side of a sign change between neighbouring voxels always has its zero inside its
+        # dilated box and is never culled (the band is closed by construction; a tape decided on
+        # the cell alone could hide it). Both in one pass (tape.bound_cull_decide).
         grow = 0 if size <= block else 1
-        _, _, (choff, choices) = _bound_level(pool, k_of, (cells[keep] - grow) * h, (cells[keep] + size - 1 + grow) * h)
-        pool = pool.with_arrays(specialise(keep_of, k_of, *pool.arrays(), choff, choices))
+        dlo, dhi = (cells - grow) * h, (cells + size - 1 + grow) * h
+        flo, fhi, (choff, choices) = _bound_level(pool, tape_of, lo * h - pad, hi * h + pad, (dlo, dhi))
+        keep = _cull_level(out, st, cells, size, flo, fhi, progress)
+        pool = pool.with_arrays(specialise(keep.astype(np.int64), tape_of, *pool.arrays(), choff, choices))
         st["levels"][-1]["mean_tape"] = round(float(pool.length.mean()), 2) if len(keep) else 0.0
         amb = cells[keep]
         if size <= block:
@@ -143,15 +144,22 @@ def enumerate_cells_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: floa
     return out, pool
 
 
-def _bound_level(pool: TapePool, tape_of: np.ndarray, blo: np.ndarray, bhi: np.ndarray):
-    """Interval bounds of each box with its tape, and the min/max decisions (offsets, choices)."""
+def _bound_level(pool: TapePool, tape_of: np.ndarray, blo: np.ndarray, bhi: np.ndarray,
+                 decide: tuple[np.ndarray, np.ndarray] | None = None):
+    """Interval bounds of each box with its tape, and the min/max decisions (offsets, choices):
+    over the boxes themselves, or (``decide``) over the decision boxes of the boxes not culled."""
     lens = pool.length[tape_of]
     choff = np.concatenate([[0], np.cumsum(lens)[:-1]]).astype(np.int64)
     choices = np.zeros(int(lens.sum()), np.int32)  # int32: a mesh clause records its start node
     if len(tape_of) == 0:
         return np.zeros(0), np.zeros(0), (choff, choices)
-    flo, fhi = bound_boxes(np.ascontiguousarray(blo, np.float64), np.ascontiguousarray(bhi, np.float64), tape_of,
-                           *pool.arrays(), *pool.oracle.arrays(), int(lens.max()), choff, choices)
+    f64 = partial(np.ascontiguousarray, dtype=np.float64)
+    if decide is None:
+        flo, fhi = bound_boxes(f64(blo), f64(bhi), tape_of, *pool.arrays(), *pool.oracle.arrays(), int(lens.max()),
+                               choff, choices)
+    else:
+        flo, fhi = bound_cull_decide(f64(blo), f64(bhi), f64(decide[0]), f64(decide[1]), tape_of, *pool.arrays(),
+                                     *pool.oracle.arrays(), int(lens.max()), choff, choices)
     return flo, fhi, (choff, choices)
 
 

@@ -282,3 +282,45 @@ def test_tape_is_traced_once_per_model_and_not_pickled(tmp_path) -> None:
     assert "_tapes" not in vars(copy)
     again = pt.compile_model(copy, job.t)
     assert again is not tp and np.array_equal(again.op, tp.op) and np.array_equal(again.c, tp.c)
+
+
+def test_fused_cull_and_decide_pass_is_exact(tmp_path) -> None:
+    """bound_cull_decide (one pass per descent level): the culling interval is bound_boxes's over
+    the culling box, and a kept box's decisions made over its decision box (the mesh walks
+    starting where the culling walk stopped) give a tape equal to the full one there, bit for
+    bit. Meshes in CSG with transforms, so min/max pruning and mesh start nodes both occur."""
+    # 5,120 faces: median cuts, so boxes near the surface start deep in the tree
+    a, b = _ico(tmp_path, "a.off", 4, 0.6), _ico(tmp_path, "b.off", 1, 0.4)
+    moved = f"{{translate: {{by: [0.4, 0.1, 0], of: {{mesh: {{path: {b}, rfunc: min_max}}}}}}}}"
+    model = (f"union: {{of: [{{mesh: {{path: {a}, rfunc: min_max}}}}, {moved}, {{sphere: {{center: [-0.5, 0, 0], "
+             f"radius: 0.3}}}}], rfunc: min_max}}")
+    tp = pt.compile_model(job_of(tmp_path, model).model)
+    rng = np.random.default_rng(7)
+    n, nb = len(tp), 300
+    dlo = rng.uniform(-0.9, 0.7, (nb, 3))
+    dhi = dlo + rng.uniform(0.02, 0.2, (nb, 1))
+    pad = rng.uniform(0.0, 0.1, (nb, 1))
+    lo, hi = dlo - pad, dhi + pad
+    # some decision boxes lie elsewhere than their culling box: their walks must start afresh
+    far = np.arange(0, nb, 5)
+    lo[far], hi[far] = dlo[far[::-1]] - pad[far], dhi[far[::-1]] + pad[far]
+    one, z = np.array([n]), np.zeros(nb, np.int64)
+    args = (z, np.zeros(1, np.int64), one, np.array([tp.res]), tp.op, tp.a, tp.b, tp.c, *tp.oracle.arrays(), n,
+            np.arange(nb, dtype=np.int64) * n)
+    ref = pt.bound_boxes(lo, hi, *args, np.zeros(nb * n, np.int32))
+    choices = np.zeros(nb * n, np.int32)
+    flo, fhi = pt.bound_cull_decide(lo, hi, dlo, dhi, *args, choices)
+    np.testing.assert_array_equal(flo, ref[0])
+    np.testing.assert_array_equal(fhi, ref[1])
+    kept = np.flatnonzero(~((flo > 0) | (fhi < 0)))
+    assert 20 < len(kept) < nb
+    s, ln, r, op, qa, qb, qc = pt.specialise(kept, z, np.zeros(1, np.int64), one, np.array([tp.res]), tp.op, tp.a,
+                                              tp.b, tp.c, np.arange(nb, dtype=np.int64) * n, choices)
+    shorter = 0
+    for i, q in enumerate(kept):
+        sub = pt.Tape(op[s[i]:s[i] + ln[i]], qa[s[i]:s[i] + ln[i]], qb[s[i]:s[i] + ln[i]], qc[s[i]:s[i] + ln[i]],
+                      int(r[i]), tp.oracle)
+        pts = rng.uniform(dlo[q], dhi[q], (48, 3))
+        np.testing.assert_array_equal(pt.evaluate_with(sub, pts), pt.evaluate_with(tp, pts))
+        shorter += len(sub) < n or bool(np.any(sub.c[sub.op == pt.BSP] != tp.c[tp.op == pt.BSP][:1]))
+    assert shorter > 0

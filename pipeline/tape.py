@@ -898,11 +898,31 @@ def _pow_interval(lo, hi, p):
     return (hi ** p if hi > 0 else math.inf), (lo ** p if lo > 0 else math.inf), 0
 
 
-@njit(parallel=True, cache=True)
 def bound_boxes(lo, hi, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen, choff, choices):
     """Interval (flo, fhi) of box q's tape over [lo_q, hi_q]; ``choices[choff[q] + k]`` receives
     the decision of clause k of box q's tape (1/2: operand a/b decides the min/max, 0: not; for
     a mesh clause 3 + the node the box starts from, when deeper than the clause's own)."""
+    return _bound_pass(lo, hi, lo, hi, False, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen, choff,
+                       choices)
+
+
+def bound_cull_decide(lo, hi, dlo, dhi, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen, choff,
+                      choices):
+    """One pass of a descent level: the interval (flo, fhi) of box q's tape over its culling box
+    [lo_q, hi_q] and, for every box not culled by it (neither flo > 0 nor fhi < 0), the
+    decisions of its clauses over its (smaller) decision box [dlo_q, dhi_q] into
+    ``choices[choff[q]:]``, as :func:`bound_boxes` records them. A mesh clause's walk over the
+    decision box starts from the node the culling walk reached when the decision box lies in
+    the culling box (that node's field is the mesh's there), else from its own start node."""
+    return _bound_pass(lo, hi, dlo, dhi, True, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen, choff,
+                       choices)
+
+
+@njit(parallel=True, cache=True)
+def _bound_pass(lo, hi, dlo, dhi, decide, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen, choff,
+                choices):
+    """The kernel of :func:`bound_boxes` (``decide`` False: decisions over the bounded box, for
+    every box) and :func:`bound_cull_decide` (True)."""
     nbox = lo.shape[0]
     flo = np.empty(nbox)
     fhi = np.empty(nbox)
@@ -916,47 +936,19 @@ def bound_boxes(lo, hi, tape_of, start, length, res, op, a, b, c, orc, odepth, m
         sv = np.empty((4, odepth + 2))
         for q in range(ch * per, min(nbox, (ch + 1) * per)):
             tp = tape_of[q]
-            _bound_one(lo[q], hi[q], start[tp], length[tp], op, a, b, c, rlo, rhi, choices, choff[q], orc, sj, sv)
-            flo[q] = rlo[res[tp]]
-            fhi[q] = rhi[res[tp]]
-            _relevance(op, a, start[tp], length[tp], res[tp], b, rlo, rhi, choices, choff[q], tlo, thi)
-    return flo, fhi
-
-
-@njit(parallel=True, cache=True)
-def bound_cull_decide(lo, hi, dlo, dhi, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen, choff,
-                      choices):
-    """One pass of a descent level: the interval (flo, fhi) of box q's tape over its culling box
-    [lo_q, hi_q] and, for every box not culled by it (neither flo > 0 nor fhi < 0), the
-    decisions of its clauses over its (smaller) decision box [dlo_q, dhi_q] into
-    ``choices[choff[q]:]``, as :func:`bound_boxes` records them. A mesh clause's walk over the
-    decision box starts from the node the culling walk reached when the decision box lies in
-    the culling box (that node's field is the mesh's there), else from its own start node."""
-    nbox = lo.shape[0]
-    flo = np.empty(nbox)
-    fhi = np.empty(nbox)
-    per = 64 if nbox >= 1024 else 1
-    for ch in prange((nbox + per - 1) // per):
-        rlo = np.empty(maxlen)
-        rhi = np.empty(maxlen)
-        tlo = np.empty(maxlen)
-        thi = np.empty(maxlen)
-        sj = np.empty((3, odepth + 2), np.int64)
-        sv = np.empty((4, odepth + 2))
-        for q in range(ch * per, min(nbox, (ch + 1) * per)):
-            tp = tape_of[q]
             s, ln, ch0 = start[tp], length[tp], choff[q]
             _bound_one(lo[q], hi[q], s, ln, op, a, b, c, rlo, rhi, choices, ch0, orc, sj, sv)
             flo[q] = rlo[res[tp]]
             fhi[q] = rhi[res[tp]]
-            if flo[q] > 0 or fhi[q] < 0:
-                continue
-            inner = True
-            for d in range(3):
-                inner = inner and lo[q, d] <= dlo[q, d] and dhi[q, d] <= hi[q, d]
-            if not inner:
-                choices[ch0:ch0 + ln] = 0
-            _bound_one(dlo[q], dhi[q], s, ln, op, a, b, c, rlo, rhi, choices, ch0, orc, sj, sv)
+            if decide:
+                if flo[q] > 0 or fhi[q] < 0:
+                    continue  # culled: no tape needed
+                inner = True
+                for d in range(3):
+                    inner = inner and lo[q, d] <= dlo[q, d] and dhi[q, d] <= hi[q, d]
+                if not inner:
+                    choices[ch0:ch0 + ln] = 0  # mesh walks start afresh
+                _bound_one(dlo[q], dhi[q], s, ln, op, a, b, c, rlo, rhi, choices, ch0, orc, sj, sv)
             _relevance(op, a, s, ln, res[tp], b, rlo, rhi, choices, ch0, tlo, thi)
     return flo, fhi
 

@@ -34,7 +34,7 @@ from numba import njit
 
 from pipeline.grid import LEAF, LEAF_LOG2, BlockGrid, pack_keys
 from pipeline.nodes import Node
-from pipeline.tape import Oracle, Tape, bound_boxes, bound_cull_decide, compile_model, eval_blocks, specialise
+from pipeline.tape import Oracle, Tape, bound_cull_decide, compile_model, eval_blocks, specialise
 
 BOUND_CHUNK = 200_000  # boxes per affine call at most (memory ~ 100 bytes x ops x boxes)
 EVAL_CHUNK = 1 << 20  # points per evaluation call at most
@@ -130,7 +130,7 @@ def enumerate_cells_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: floa
         # the cell alone could hide it). Both in one pass (tape.bound_cull_decide).
         grow = 0 if size <= block else 1
         dlo, dhi = (cells - grow) * h, (cells + size - 1 + grow) * h
-        flo, fhi, (choff, choices) = _bound_level(pool, tape_of, lo * h - pad, hi * h + pad, (dlo, dhi))
+        flo, fhi, (choff, choices) = _bound_level(pool, tape_of, lo * h - pad, hi * h + pad, dlo, dhi)
         keep = _cull_level(out, st, cells, size, flo, fhi, progress)
         pool = pool.with_arrays(specialise(keep.astype(np.int64), tape_of, *pool.arrays(), choff, choices))
         st["levels"][-1]["mean_tape"] = round(float(pool.length.mean()), 2) if len(keep) else 0.0
@@ -144,22 +144,18 @@ def enumerate_cells_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: floa
     return out, pool
 
 
-def _bound_level(pool: TapePool, tape_of: np.ndarray, blo: np.ndarray, bhi: np.ndarray,
-                 decide: tuple[np.ndarray, np.ndarray] | None = None):
-    """Interval bounds of each box with its tape, and the min/max decisions (offsets, choices):
-    over the boxes themselves, or (``decide``) over the decision boxes of the boxes not culled."""
+def _bound_level(pool: TapePool, tape_of: np.ndarray, blo: np.ndarray, bhi: np.ndarray, dlo: np.ndarray,
+                 dhi: np.ndarray):
+    """Interval bounds of each box (blo..bhi) with its tape, and for the boxes not culled the
+    min/max decisions over their decision boxes dlo..dhi (offsets, choices)."""
     lens = pool.length[tape_of]
     choff = np.concatenate([[0], np.cumsum(lens)[:-1]]).astype(np.int64)
     choices = np.zeros(int(lens.sum()), np.int32)  # int32: a mesh clause records its start node
     if len(tape_of) == 0:
         return np.zeros(0), np.zeros(0), (choff, choices)
     f64 = partial(np.ascontiguousarray, dtype=np.float64)
-    if decide is None:
-        flo, fhi = bound_boxes(f64(blo), f64(bhi), tape_of, *pool.arrays(), *pool.oracle.arrays(), int(lens.max()),
-                               choff, choices)
-    else:
-        flo, fhi = bound_cull_decide(f64(blo), f64(bhi), f64(decide[0]), f64(decide[1]), tape_of, *pool.arrays(),
-                                     *pool.oracle.arrays(), int(lens.max()), choff, choices)
+    flo, fhi = bound_cull_decide(f64(blo), f64(bhi), f64(dlo), f64(dhi), tape_of, *pool.arrays(),
+                                 *pool.oracle.arrays(), int(lens.max()), choff, choices)
     return flo, fhi, (choff, choices)
 
 

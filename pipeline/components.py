@@ -646,7 +646,7 @@ def coarsest_same_count(comp: Components) -> tuple[Components, dict[int, int]]:
 def _label_map(a: np.ndarray, b: np.ndarray) -> dict[int, int]:
     """{a_i: b_i} of two label arrays over the same cells, a -> b being a function (one b per a):
     by scatter and check, not by a row-wise np.unique (a structured sort: 2 s of the demo's
-    components at 512^3). Pairs that are not a function keep every pair, as np.unique gave."""
+    components at 512^3). Pairs that are not a function give np.unique's dict (the last pair per label)."""
     m = np.full(int(a.max(initial=0)) + 1, -1, np.int64)
     m[a] = b
     if not np.array_equal(m[a], b):

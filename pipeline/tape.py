@@ -115,6 +115,8 @@ class TapeBuilder:
                 return Sym(self, a)
         elif op in _ARITH and (ops[a] == CONST) != (ops[b] == CONST):
             op, a, b, c = self._immediate(op, a, b)
+        if (op, c) in _IDENTITY:  # a + 0, a * 1, a / 1, a ** 1 are a (a centre at 0, a unit radius)
+            return Sym(self, a)
         if op in _COMMUTATIVE and a > b:  # one key for both orders
             a, b = b, a
         key = (op, a, b, c)
@@ -164,6 +166,9 @@ _MINMAX = frozenset((MIN, MAX))
 _ARITH = frozenset((ADD, SUB, MUL, DIV))
 _COMMUTATIVE = frozenset((ADD, MUL, MIN, MAX, R0AND))
 _LEAVES = frozenset((X, Y, Z, CONST)) | ORACLES  # never folded
+# clauses equal to their operand: exactly (a * 1, a / 1, a ** 1, a + -0) or but for the sign of a
+# zero (-0 + 0 is +0; the field's sign tests compare with 0, where the two zeros are equal)
+_IDENTITY = frozenset(((ADDC, 0.0), (MULC, 1.0), (DIVC, 1.0), (POWC, 1.0)))
 
 
 @njit(cache=True)
@@ -534,6 +539,18 @@ def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m, orc, sj, sv, spec, cn
         elif o == RSUBC:
             for v in range(m):
                 reg[k, v] = ck - reg[ia, v]
+        elif o == ABS:
+            for v in range(m):
+                reg[k, v] = abs(reg[ia, v])
+        elif o == SQRT:
+            for v in range(m):
+                reg[k, v] = _apply(SQRT, reg[ia, v], 0.0, ck)
+        elif o == POWC:
+            for v in range(m):
+                reg[k, v] = _powc(reg[ia, v], ck)
+        elif o == R0AND:
+            for v in range(m):
+                reg[k, v] = _r0and(reg[ia, v], reg[ib, v])
         elif o == MIN:
             for v in range(m):
                 reg[k, v] = _apply(MIN, reg[ia, v], reg[ib, v], ck)

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from pipeline.grid import LEAF, LEAF_LOG2, BlockGrid, pack_keys
 from pipeline.nodes import Node
@@ -279,40 +279,67 @@ def band_mask(values: np.ndarray, h: float, band: float) -> np.ndarray:
     The gradient is by central differences inside a block and one-sided at its faces (first
     order is enough to decide band membership); Numba, one pass over the blocks.
     """
-    return _band_kernel(np.ascontiguousarray(values, dtype=np.float64), float(h), float(band))
+    v = np.ascontiguousarray(values, dtype=np.float64)
+    return _mark_band(v, np.ones(v.shape, np.bool_), float(h), float(band))[0]
+
+
+@njit(cache=True, parallel=True)
+def _mark_band(v: np.ndarray, valid: np.ndarray, h: float, band: float) -> tuple[np.ndarray, int]:
+    """(band mask & valid, flat index of the first valid non-finite value or -1); a non-finite
+    value counts as -inf for its neighbours' sign tests. One parallel pass over the blocks."""
+    n = v.shape[0]
+    out = np.zeros(v.shape, dtype=np.bool_)
+    first = np.full(n, -1, np.int64)
+    for q in prange(n):
+        first[q] = _mark_block(v, valid, q, h, band, out)
+    for q in range(n):
+        if first[q] >= 0:
+            return out, first[q]
+    return out, -1
 
 
 @njit(cache=True)
-def _band_kernel(v: np.ndarray, h: float, band: float) -> np.ndarray:
-    n, b = v.shape[0], v.shape[1]
-    out = np.zeros(v.shape, dtype=np.bool_)
+def _mark_block(v, valid, q, h, band, out) -> int:
+    """Band mask of block q into out[q]; the flat index of its first valid non-finite value or -1."""
+    b = v.shape[1]
     lim = band * h
-    for q in range(n):
-        for i in range(b):
-            for j in range(b):
-                for k in range(b):
-                    f = v[q, i, j, k]
-                    g2 = 0.0
-                    change = f == 0.0
-                    for axis in range(3):
-                        lo_i, lo_j, lo_k, hi_i, hi_j, hi_k = i, j, k, i, j, k
-                        c = i if axis == 0 else (j if axis == 1 else k)
-                        if axis == 0:
-                            lo_i, hi_i = max(i - 1, 0), min(i + 1, b - 1)
-                        elif axis == 1:
-                            lo_j, hi_j = max(j - 1, 0), min(j + 1, b - 1)
-                        else:
-                            lo_k, hi_k = max(k - 1, 0), min(k + 1, b - 1)
-                        span = (min(c + 1, b - 1) - max(c - 1, 0)) * h
-                        a1 = v[q, lo_i, lo_j, lo_k]
-                        a2 = v[q, hi_i, hi_j, hi_k]
-                        if span > 0:
-                            d = (a2 - a1) / span
-                            g2 += d * d
-                        if (a1 > 0) != (f > 0) or (a2 > 0) != (f > 0):
-                            change = True
-                    out[q, i, j, k] = change or abs(f) <= lim * np.sqrt(g2)
-    return out
+    m = b * b * b
+    blk = np.empty((b, b, b))
+    bad = -1
+    for i in range(b):
+        for j in range(b):
+            for k in range(b):
+                f = v[q, i, j, k]
+                if not np.isfinite(f):
+                    if bad < 0 and valid[q, i, j, k]:
+                        bad = q * m + (i * b + j) * b + k
+                    f = -np.inf
+                blk[i, j, k] = f
+    for i in range(b):
+        for j in range(b):
+            for k in range(b):
+                f = blk[i, j, k]
+                g2 = 0.0
+                change = f == 0.0
+                for axis in range(3):
+                    lo_i, lo_j, lo_k, hi_i, hi_j, hi_k = i, j, k, i, j, k
+                    c = i if axis == 0 else (j if axis == 1 else k)
+                    if axis == 0:
+                        lo_i, hi_i = max(i - 1, 0), min(i + 1, b - 1)
+                    elif axis == 1:
+                        lo_j, hi_j = max(j - 1, 0), min(j + 1, b - 1)
+                    else:
+                        lo_k, hi_k = max(k - 1, 0), min(k + 1, b - 1)
+                    span = (min(c + 1, b - 1) - max(c - 1, 0)) * h
+                    a1 = blk[lo_i, lo_j, lo_k]
+                    a2 = blk[hi_i, hi_j, hi_k]
+                    if span > 0:
+                        d = (a2 - a1) / span
+                        g2 += d * d
+                    if (a1 > 0) != (f > 0) or (a2 > 0) != (f > 0):
+                        change = True
+                out[q, i, j, k] = valid[q, i, j, k] and (change or abs(f) <= lim * np.sqrt(g2))
+    return bad
 
 
 @dataclass
@@ -357,11 +384,10 @@ def sample_blocks(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, ban
         vals = evaluate_blocks(model, blocks, block, h, t)
     levels.stats["evaluator"] = "tape" if tape is not None else "nodes"
     valid = _in_domain(blocks, block, imin, imax)
-    bad = valid & ~np.isfinite(vals)
-    if bad.any():
-        n, i, j, k = np.argwhere(bad)[0]
+    active, bad = _mark_band(vals, valid, float(h), float(band))
+    if bad >= 0:
+        n, i, j, k = np.unravel_index(bad, vals.shape)
         raise NonFiniteField((blocks[n] + (i, j, k)) * h)
-    active = band_mask(np.where(np.isfinite(vals), vals, -np.inf), h, band) & valid
     if progress:
         progress(f"evaluated {len(blocks)} blocks")
     return BlockSamples(blocks, vals, active, valid, levels.inside, levels.stats, levels.outside)
@@ -383,13 +409,13 @@ def assemble(s: BlockSamples, imin: np.ndarray, imax: np.ndarray, h: float, band
     (:func:`close_band`) and every value is finite (clamped to +-FINITE_LIMIT, counted)."""
     block = s.values.shape[1] if len(s.values) else 4
     vals = s.values
-    clamped = int(np.count_nonzero(s.valid & (np.abs(vals) > FINITE_LIMIT)))
+    clamped = _count_beyond(vals, s.valid, FINITE_LIMIT)
     if clamped:
         vals = np.clip(vals, -FINITE_LIMIT, FINITE_LIMIT)
     grid, known = _assemble_leaves(s.blocks, block, vals, s.active, s.valid, s.inside, h, 1.0)
     added = close_band(grid, known)
     # from the float32 values the grid stores, so bricked (float32 transfer) and unsplit runs agree
-    bg = _background(grid.values[grid.active], band, h)
+    bg = _background(grid.values, grid.active, band, h)
     _set_proxies(grid.values, known, np.float32(bg))
     grid.background = -bg
     inside_boxes = _inside_boxes(s.inside, imin, imax)
@@ -494,11 +520,26 @@ def _in_domain(blocks: np.ndarray, b: int, imin: np.ndarray, imax: np.ndarray) -
     return valid
 
 
-def _background(active_vals: np.ndarray, band: float, h: float) -> float:
+def _background(values: np.ndarray, active: np.ndarray, band: float, h: float) -> float:
     """|background|: above every active value, so inactive +-bg never collide with band values."""
-    if active_vals.size == 0:
+    top = _max_abs_active(values, active) if len(values) else -1.0
+    if top < 0:
         return float(band * h)
-    return float(max(np.abs(active_vals).max() * 1.01, 1e-6))
+    return float(max(top * 1.01, 1e-6))
+
+
+@njit(cache=True, parallel=True)
+def _max_abs_active(values, active) -> float:
+    """max |v| over the active voxels of the leaves, -1 when none is active."""
+    top = np.full(values.shape[0], -1.0)
+    for r in prange(values.shape[0]):
+        fv, fa = values[r].reshape(-1), active[r].reshape(-1)
+        t = -1.0
+        for n in range(fv.size):
+            if fa[n]:
+                t = max(t, abs(np.float64(fv[n])))
+        top[r] = t
+    return top.max()
 
 
 def _assemble_leaves(blocks, b, vals, active, valid, inside_levels, h, bg) -> tuple[BlockGrid, np.ndarray]:
@@ -512,8 +553,7 @@ def _assemble_leaves(blocks, b, vals, active, valid, inside_levels, h, bg) -> tu
     values = np.full((L, LEAF, LEAF, LEAF), -bg, np.float32)
     act = np.zeros((L, LEAF, LEAF, LEAF), bool)
     known = np.zeros((L, LEAF, LEAF, LEAF), bool)
-    filled = np.where(valid, vals, -bg)
-    _scatter(values, act, known, rows.reshape(-1), blocks - leaf_of, filled, active, valid)
+    _scatter(values, act, known, rows.reshape(-1), blocks - leaf_of, vals, active, valid, np.float32(-bg))
     for origins, size in inside_levels:
         if size >= LEAF or len(origins) == 0:
             continue
@@ -525,15 +565,28 @@ def _assemble_leaves(blocks, b, vals, active, valid, inside_levels, h, bg) -> tu
     return grid, known
 
 
-@njit(cache=True)
-def _scatter(values, act, known, rows, offs, vals, active, valid):
+@njit(cache=True, parallel=True)
+def _count_beyond(vals, valid, limit) -> int:
+    """How many valid values have |v| > limit (one parallel pass)."""
+    flat_v, flat_ok = vals.reshape(-1), valid.reshape(-1)
+    total = 0
+    for n in prange(flat_v.size):
+        if flat_ok[n] and abs(flat_v[n]) > limit:
+            total += 1
+    return total
+
+
+@njit(cache=True, parallel=True)
+def _scatter(values, act, known, rows, offs, vals, active, valid, outside):
+    """Blocks into their leaves (blocks are disjoint: the parallel writes never meet); voxels
+    outside the domain hold ``outside``."""
     b = vals.shape[1]
-    for n in range(len(rows)):
+    for n in prange(len(rows)):
         r, oi, oj, ok = rows[n], offs[n, 0], offs[n, 1], offs[n, 2]
         for i in range(b):
             for j in range(b):
                 for k in range(b):
-                    values[r, oi + i, oj + j, ok + k] = vals[n, i, j, k]
+                    values[r, oi + i, oj + j, ok + k] = vals[n, i, j, k] if valid[n, i, j, k] else outside
                     act[r, oi + i, oj + j, ok + k] = active[n, i, j, k]
                     known[r, oi + i, oj + j, ok + k] = valid[n, i, j, k]
 

@@ -17,11 +17,44 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import vtk
-from vtk.util import numpy_support as nps
+from vtkmodules.util import numpy_support as nps
+from vtkmodules.vtkCommonCore import (
+    VTK_FLOAT,
+    VTK_ID_TYPE,
+    VTK_INT,
+    VTK_UNSIGNED_CHAR,
+    vtkDataArray,
+    vtkDoubleArray,
+    vtkPoints,
+)
+from vtkmodules.vtkCommonDataModel import (
+    VTK_HEXAHEDRON,
+    vtkCellArray,
+    vtkImageData,
+    vtkPolyData,
+    vtkUnstructuredGrid,
+)
+from vtkmodules.vtkIOCore import vtkWriter
+from vtkmodules.vtkIOGeometry import vtkOBJWriter
+from vtkmodules.vtkIOPLY import vtkPLYWriter
+from vtkmodules.vtkIOXML import (
+    vtkXMLImageDataWriter,
+    vtkXMLPolyDataWriter,
+    vtkXMLUnstructuredGridWriter,
+    vtkXMLWriter,
+)
 
 from pipeline.atomic import atomic_path
 from pipeline.grid import pack_keys
+from pipeline.meshkernels import (
+    centroid_voxels,
+    face_normals_kernel,
+    gather_chunk,
+    group_by_id,
+    split_polygons,
+    vertex_normal_sums,
+    weld_kernel,
+)
 
 DEFAULT_MAX_POINTS = 16_000_000  # .vti points before a stride is applied (64 MB per float array)
 DENSE_FALLBACK = 8  # dense box read for inactive samples when the box is <= 8x their count
@@ -42,10 +75,9 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def face_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Unnormalised triangle normals (length = twice the area), float64."""
-    p = points.astype(np.float64)
-    a = p[triangles[:, 0]]
-    return cross(p[triangles[:, 1]] - a, p[triangles[:, 2]] - a)
+    """Unnormalised triangle normals (length = twice the area), float64: one compiled pass
+    (the fancy-indexed NumPy version made five (M,3) temporaries)."""
+    return face_normals_kernel(np.ascontiguousarray(points), np.ascontiguousarray(triangles, dtype=np.int64))
 
 
 # --- reading grids in bulk ----------------------------------------------------------------
@@ -64,12 +96,18 @@ def union_active_bbox(grids: Iterable[Any]) -> tuple[np.ndarray, np.ndarray] | N
     return lo, hi
 
 
-def read_dense(grid: Any, lo: Iterable[int], shape: Iterable[int]) -> np.ndarray:
-    """Values (active or not) of the box starting at voxel ``lo``: (nx, ny, nz) or (nx, ny, nz, 3)."""
-    shape = tuple(int(n) for n in shape)
-    arr = np.zeros(shape + ((3,) if is_vector(grid) else ()), dtype=np.float32)
-    grid.copyToArray(arr, tuple(int(c) for c in lo))
-    return arr
+def read_dense(grid: Any, lo: Iterable[int], shape: Iterable[int], out: np.ndarray | None = None) -> np.ndarray:
+    """Values (active or not) of the box starting at voxel ``lo``: (nx, ny, nz) or (nx, ny, nz, 3).
+
+    ``out`` (float32, C-contiguous, of that shape) is filled instead of a new array: ``copyToArray``
+    writes every value of the box (leaf values, tile values, the background)."""
+    shape = tuple(int(n) for n in shape) + ((3,) if is_vector(grid) else ())
+    if out is None:
+        out = np.zeros(shape, dtype=np.float32)
+    elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError(f"read_dense: out must be C-contiguous float32 {shape}, got {out.dtype} {out.shape}")
+    grid.copyToArray(out, tuple(int(c) for c in lo))
+    return out
 
 
 def active_voxels(grid: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -95,6 +133,7 @@ def active_voxels(grid: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 CHUNK_LOG2 = 5  # sample_values reads 32^3 chunks: few copyToArray calls, small buffers
+MAX_CHUNK_GROUPS = 1 << 24  # counting sort over the chunks' bounding box up to this many chunks
 
 
 def sample_values(grid: Any, ijk: np.ndarray) -> np.ndarray:
@@ -103,24 +142,37 @@ def sample_values(grid: Any, ijk: np.ndarray) -> np.ndarray:
 
     One ``copyToArray`` per 32^3 chunk the points touch: the cost follows the points, not the
     grid's active voxel count (a per-voxel iterator pass over 30 M voxels takes about a minute).
+    The points are grouped by chunk with a counting sort over the chunks' bounding box (a
+    comparison sort of every point's key when that box is huge), and one buffer is reused.
     """
-    ijk = np.asarray(ijk, dtype=np.int64).reshape(-1, 3)
+    ijk = np.ascontiguousarray(ijk, dtype=np.int64).reshape(-1, 3)
     out = np.empty(len(ijk), np.float32)
     if len(ijk) == 0:
         return out
+    if is_vector(grid):
+        raise ValueError("sample_values reads scalar grids")
     chunk = ijk >> CHUNK_LOG2
-    keys = pack_keys(chunk)
-    order = np.argsort(keys, kind="stable")
-    sk = keys[order]
-    starts = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
-    ends = np.r_[starts[1:], len(sk)]
-    size = (1 << CHUNK_LOG2,) * 3
-    for s, e in zip(starts.tolist(), ends.tolist(), strict=True):
-        idx = order[s:e]
-        origin = chunk[idx[0]] << CHUNK_LOG2
-        buf = read_dense(grid, origin, size)
-        rel = ijk[idx] - origin
-        out[idx] = buf[rel[:, 0], rel[:, 1], rel[:, 2]]
+    cmin = chunk.min(axis=0)
+    dims = chunk.max(axis=0) - cmin + 1
+    if math.prod(dims.tolist()) <= MAX_CHUNK_GROUPS:
+        rel = chunk - cmin
+        ids = (rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]
+        order, starts = group_by_id(ids, int(math.prod(dims.tolist())))
+        nonempty = np.flatnonzero(starts[1:] > starts[:-1])
+        bounds = zip(starts[nonempty].tolist(), starts[nonempty + 1].tolist(), strict=True)
+    else:
+        keys = pack_keys(chunk)
+        order = np.argsort(keys, kind="stable")
+        sk = keys[order]
+        first = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
+        bounds = zip(first.tolist(), np.r_[first[1:], len(sk)].tolist(), strict=True)
+    n = 1 << CHUNK_LOG2
+    buf = np.empty((n, n, n), np.float32)
+    for s, e in bounds:
+        rows = order[s:e]
+        ox, oy, oz = (chunk[rows[0]] << CHUNK_LOG2).tolist()
+        read_dense(grid, (ox, oy, oz), (n, n, n), out=buf)
+        gather_chunk(out, buf, ijk, rows, ox, oy, oz)
     return out
 
 
@@ -175,37 +227,41 @@ def vti_stride(shape: Iterable[int], max_points: int) -> int:
 
 
 def _strided_box(grid: Any, lo: np.ndarray, shape: np.ndarray, stride: int) -> np.ndarray:
-    """Values at lo + stride * m over the box, reading one x-plane at a time when strided."""
-    if stride == 1:
-        return read_dense(grid, lo, shape)
-    planes = [
-        read_dense(grid, (i, lo[1], lo[2]), (1, shape[1], shape[2]))[:, ::stride, ::stride]
-        for i in range(int(lo[0]), int(lo[0] + shape[0]), stride)
-    ]
-    return np.concatenate(planes, axis=0)
+    """Values at lo + stride * m over the box in VTK point order: (mz, my, mx[, 3]), x fastest.
+
+    One y-plane read at a time (``copyToArray`` of nx x 1 x nz, the fastest of the three plane
+    orientations in OpenVDB 10) into one reused buffer, its strided rows transposed into the
+    output: no whole-box temporary, one copy of the values."""
+    nx, ny, nz = (int(n) for n in shape)
+    dims = [-(-n // stride) for n in (nx, ny, nz)]
+    comps = (3,) if is_vector(grid) else ()
+    out = np.empty((dims[2], dims[1], dims[0]) + comps, np.float32)
+    buf = np.empty((nx, 1, nz) + comps, np.float32)
+    for m, j in enumerate(range(int(lo[1]), int(lo[1]) + ny, stride)):
+        read_dense(grid, (int(lo[0]), j, int(lo[2])), (nx, 1, nz), out=buf)
+        out[:, m] = np.swapaxes(buf[::stride, 0, ::stride], 0, 1)
+    return out
 
 
-def _point_array(name: str, arr: np.ndarray) -> vtk.vtkDataArray:
-    """VTK array in point order (x fastest) from an (nx, ny, nz[, 3]) array."""
-    if arr.ndim == 4:
-        flat = np.ascontiguousarray(arr.transpose(2, 1, 0, 3).reshape(-1, 3))
-    else:
-        flat = np.ascontiguousarray(arr.transpose(2, 1, 0).reshape(-1))
-    out = nps.numpy_to_vtk(flat, deep=True, array_type=vtk.VTK_FLOAT)
+def _point_array(name: str, arr: np.ndarray) -> vtkDataArray:
+    """VTK array from an (mz, my, mx[, 3]) array in point order (x fastest); shares its memory
+    (numpy_to_vtk keeps a reference to it on the VTK array)."""
+    flat = np.ascontiguousarray(arr).reshape((-1, 3) if arr.ndim == 4 else (-1,))
+    out = nps.numpy_to_vtk(flat, deep=False, array_type=VTK_FLOAT)
     out.SetName(name)
     return out
 
 
-def _field(name: str, values: Iterable[float]) -> vtk.vtkDoubleArray:
-    arr = vtk.vtkDoubleArray()
+def _field(name: str, values: Iterable[float]) -> vtkDoubleArray:
+    arr = vtkDoubleArray()
     arr.SetName(name)
     for v in values:
         arr.InsertNextValue(float(v))
     return arr
 
 
-def _write(writer: vtk.vtkXMLWriter | vtk.vtkWriter, data: Any, path: Path) -> None:
-    if isinstance(writer, vtk.vtkXMLWriter):  # LZ4: a fraction of zlib's time, ParaView reads it
+def _write(writer: vtkXMLWriter | vtkWriter, data: Any, path: Path) -> None:
+    if isinstance(writer, vtkXMLWriter):  # LZ4: a fraction of zlib's time, ParaView reads it
         writer.SetCompressorTypeToLZ4()
     with atomic_path(path) as tmp:
         writer.SetFileName(str(tmp))
@@ -231,7 +287,7 @@ def write_vti(
     shape = hi - lo + 1
     stride = vti_stride(shape, max_points)
     dims = [-(-int(n) // stride) for n in shape]
-    image = vtk.vtkImageData()
+    image = vtkImageData()
     image.SetDimensions(*dims)
     image.SetOrigin(*(lo * voxel_size).tolist())
     image.SetSpacing(*([stride * voxel_size] * 3))
@@ -240,7 +296,7 @@ def write_vti(
     image.GetFieldData().AddArray(_field("voxel_size", [voxel_size]))
     image.GetFieldData().AddArray(_field("stride", [stride]))
     image.GetFieldData().AddArray(_field("index_origin", lo.tolist()))
-    _write(vtk.vtkXMLImageDataWriter(), image, path)
+    _write(vtkXMLImageDataWriter(), image, path)
     return {
         "path": path.name, "kind": "vti", "stride": stride, "dimensions": dims,
         "origin": (lo * voxel_size).tolist(), "spacing": stride * voxel_size,
@@ -301,10 +357,7 @@ def default_isovalue(name: str, grid: Any) -> float:
 
 def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals."""
-    face = face_normals(points, triangles)
-    corners = triangles.reshape(-1)
-    acc = np.stack([np.bincount(corners, np.repeat(face[:, c], 3), minlength=len(points)) for c in range(3)],
-                   axis=1)
+    acc = vertex_normal_sums(np.ascontiguousarray(points), np.ascontiguousarray(triangles, dtype=np.int64))
     length = np.linalg.norm(acc, axis=1, keepdims=True)
     return (acc / np.where(length > 0, length, 1.0)).astype(np.float32)
 
@@ -316,11 +369,12 @@ def triangle_labels(
 
     The nearest of the 8 is the rounded centroid: where it holds a label that is the answer
     (one sample per triangle); only the other triangles read all 8 corners."""
-    centroid = points[triangles].astype(np.float64).mean(axis=1) / voxel_size
-    out = np.rint(sample_values(component, np.rint(centroid).astype(np.int64))).astype(np.int32)
+    points = np.ascontiguousarray(points)
+    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
+    out = np.rint(sample_values(component, centroid_voxels(points, triangles, float(voxel_size)))).astype(np.int32)
     todo = np.flatnonzero(out <= 0)
     if len(todo):
-        c = centroid[todo]
+        c = points[triangles[todo]].astype(np.float64).mean(axis=1) / voxel_size
         base = np.floor(c).astype(np.int64)
         ijk = (base[:, None, :] + _CORNERS[None]).reshape(-1, 3)
         labels = np.rint(sample_values(component, ijk)).astype(np.int32).reshape(-1, 8)
@@ -336,19 +390,13 @@ def weld(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndar
 
     volumeToMesh emits coincident vertices and zero-area triangles where the field is exactly
     the isovalue at a voxel centre; they would get zero normals and confuse importers.
+    Bit-identical float32 points are merged (a hash table, in first-occurrence order), a triangle
+    is dropped when its float64 cross product is exactly zero, unused points are dropped.
     """
     if len(points) == 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64)
-    points = np.ascontiguousarray(points, dtype=np.float32)
-    rows = points.view(np.dtype((np.void, points.dtype.itemsize * 3))).reshape(-1)
-    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
-    uniq = points[first]
-    tris = inverse.reshape(-1)[triangles]
-    tris = tris[np.abs(face_normals(uniq, tris)).max(axis=1) > 0.0]
-    used = np.unique(tris)
-    remap = np.full(len(uniq), -1, np.int64)
-    remap[used] = np.arange(len(used))
-    return np.ascontiguousarray(uniq[used], dtype=np.float32), np.ascontiguousarray(remap[tris])
+    points = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
+    return weld_kernel(points, points.view(np.uint32), np.ascontiguousarray(triangles, dtype=np.int64))
 
 
 def extract_surface(
@@ -368,12 +416,8 @@ def extract_surface(
     grid = grids[name]
     iso = default_isovalue(name, grid) if isovalue is None else float(isovalue)
     points, tris, quads = grid.convertToPolygons(isovalue=iso, adaptivity=float(adaptivity))
-    quads = np.asarray(quads, np.int64).reshape(-1, 4)
-    triangles = np.concatenate(
-        [np.asarray(tris, np.int64).reshape(-1, 3), quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]
-    )
-    if _needs_flip(name, grid):
-        triangles = triangles[:, ::-1]
+    triangles = split_polygons(np.ascontiguousarray(tris).reshape(-1, 3), np.ascontiguousarray(quads).reshape(-1, 4),
+                               _needs_flip(name, grid))
     points, triangles = weld(np.asarray(points, dtype=np.float32), triangles)
     labels = None
     if "component" in grids and len(triangles):
@@ -381,24 +425,28 @@ def extract_surface(
     return SurfaceMesh(points, triangles, vertex_normals(points, triangles), name, iso, labels)
 
 
-def mesh_polydata(mesh: SurfaceMesh) -> vtk.vtkPolyData:
+def _shared(arr: np.ndarray, dtype: type, vtk_type: int) -> vtkDataArray:
+    """VTK array over ``arr``'s memory when it already has the type and layout (numpy_to_vtk
+    keeps a reference to it), else over a converted copy."""
+    arr = np.ascontiguousarray(arr, dtype=dtype)
+    return nps.numpy_to_vtk(arr, deep=False, array_type=vtk_type)
+
+
+def mesh_polydata(mesh: SurfaceMesh) -> vtkPolyData:
     """vtkPolyData with point normals ("Normals") and the component label as cell data."""
-    poly = vtk.vtkPolyData()
-    pts = vtk.vtkPoints()
-    pts.SetData(nps.numpy_to_vtk(mesh.points, deep=True, array_type=vtk.VTK_FLOAT))
+    poly = vtkPolyData()
+    pts = vtkPoints()
+    pts.SetData(_shared(mesh.points, np.float32, VTK_FLOAT))
     poly.SetPoints(pts)
-    cells = vtk.vtkCellArray()
+    cells = vtkCellArray()
     offsets = np.arange(0, 3 * len(mesh.triangles) + 1, 3, dtype=np.int64)
-    cells.SetData(
-        nps.numpy_to_vtk(offsets, deep=True, array_type=vtk.VTK_ID_TYPE),
-        nps.numpy_to_vtk(mesh.triangles.reshape(-1), deep=True, array_type=vtk.VTK_ID_TYPE),
-    )
+    cells.SetData(_shared(offsets, np.int64, VTK_ID_TYPE), _shared(mesh.triangles.reshape(-1), np.int64, VTK_ID_TYPE))
     poly.SetPolys(cells)
-    normals = nps.numpy_to_vtk(mesh.normals, deep=True, array_type=vtk.VTK_FLOAT)
+    normals = _shared(mesh.normals, np.float32, VTK_FLOAT)
     normals.SetName("Normals")
     poly.GetPointData().SetNormals(normals)
     if mesh.labels is not None:
-        labels = nps.numpy_to_vtk(mesh.labels, deep=True, array_type=vtk.VTK_INT)
+        labels = _shared(mesh.labels, np.int32, VTK_INT)
         labels.SetName("component")
         poly.GetCellData().AddArray(labels)
     return poly
@@ -409,7 +457,7 @@ def write_vtp(path: str | os.PathLike, mesh: SurfaceMesh) -> dict:
     path = Path(path)
     poly = mesh_polydata(mesh)
     poly.GetFieldData().AddArray(_field("isovalue", [mesh.isovalue]))
-    _write(vtk.vtkXMLPolyDataWriter(), poly, path)
+    _write(vtkXMLPolyDataWriter(), poly, path)
     return {"path": path.name, "kind": "vtp", "source": mesh.source, "points": len(mesh.points),
             "triangles": len(mesh.triangles)}
 
@@ -417,7 +465,7 @@ def write_vtp(path: str | os.PathLike, mesh: SurfaceMesh) -> dict:
 def write_ply(path: str | os.PathLike, mesh: SurfaceMesh) -> dict:
     """Binary PLY (vertices, normals, triangles) for Blender."""
     path = Path(path)
-    writer = vtk.vtkPLYWriter()
+    writer = vtkPLYWriter()
     writer.SetFileTypeToBinary()
     writer.SetArrayName("")  # no colours: Blender reads positions, normals and faces
     _write(writer, mesh_polydata(mesh), path)
@@ -427,7 +475,7 @@ def write_ply(path: str | os.PathLike, mesh: SurfaceMesh) -> dict:
 def write_obj(path: str | os.PathLike, mesh: SurfaceMesh) -> dict:
     """Wavefront OBJ (vertices, normals, triangles), Y is not swapped: world axes as in the .vdb."""
     path = Path(path)
-    _write(vtk.vtkOBJWriter(), mesh_polydata(mesh), path)
+    _write(vtkOBJWriter(), mesh_polydata(mesh), path)
     return {"path": path.name, "kind": "obj", "points": len(mesh.points), "triangles": len(mesh.triangles)}
 
 
@@ -440,23 +488,23 @@ def union_active(samplers: Iterable[GridSampler]) -> np.ndarray:
     return ijk[first]
 
 
-def hex_cells(ijk: np.ndarray, voxel_size: float) -> vtk.vtkUnstructuredGrid:
+def hex_cells(ijk: np.ndarray, voxel_size: float) -> vtkUnstructuredGrid:
     """Unstructured grid with one hexahedron per voxel (shared corner points)."""
     corners = (ijk[:, None, :] + _HEX[None]).reshape(-1, 3)
     keys, inverse = np.unique(pack_keys(corners), return_inverse=True)
     uniq = np.empty((len(keys), 3), np.int64)
     uniq[inverse] = corners
-    ug = vtk.vtkUnstructuredGrid()
-    pts = vtk.vtkPoints()
+    ug = vtkUnstructuredGrid()
+    pts = vtkPoints()
     pts.SetData(nps.numpy_to_vtk(((uniq - 0.5) * voxel_size).astype(np.float32), deep=True))
     ug.SetPoints(pts)
-    cells = vtk.vtkCellArray()
+    cells = vtkCellArray()
     cells.SetData(
         nps.numpy_to_vtk(np.arange(0, 8 * len(ijk) + 1, 8, dtype=np.int64), deep=True,
-                         array_type=vtk.VTK_ID_TYPE),
-        nps.numpy_to_vtk(inverse.astype(np.int64).reshape(-1), deep=True, array_type=vtk.VTK_ID_TYPE),
+                         array_type=VTK_ID_TYPE),
+        nps.numpy_to_vtk(inverse.astype(np.int64).reshape(-1), deep=True, array_type=VTK_ID_TYPE),
     )
-    ug.SetCells(vtk.VTK_HEXAHEDRON, cells)
+    ug.SetCells(VTK_HEXAHEDRON, cells)
     return ug
 
 
@@ -481,14 +529,14 @@ def write_vtu(
     ug = hex_cells(ijk, voxel_size)
     for name, sampler in samplers.items():
         values, active = sampler.sample(ijk)
-        arr = nps.numpy_to_vtk(np.ascontiguousarray(values), deep=True, array_type=vtk.VTK_FLOAT)
+        arr = nps.numpy_to_vtk(np.ascontiguousarray(values), deep=True, array_type=VTK_FLOAT)
         arr.SetName(name)
         ug.GetCellData().AddArray(arr)
-        flag = nps.numpy_to_vtk(active.astype(np.uint8), deep=True, array_type=vtk.VTK_UNSIGNED_CHAR)
+        flag = nps.numpy_to_vtk(active.astype(np.uint8), deep=True, array_type=VTK_UNSIGNED_CHAR)
         flag.SetName(f"active_{name}")
         ug.GetCellData().AddArray(flag)
     ug.GetFieldData().AddArray(_field("voxel_size", [voxel_size]))
-    _write(vtk.vtkXMLUnstructuredGridWriter(), ug, path)
+    _write(vtkXMLUnstructuredGridWriter(), ug, path)
     return {"path": path.name, "kind": "vtu", "cells": len(ijk)}
 
 

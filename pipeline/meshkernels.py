@@ -1,0 +1,198 @@
+"""Compiled kernels for surface meshes and bulk grid reads (export stage): merging coincident
+vertices with a hash table instead of a sort, triangle and vertex normals in one pass, and
+grouping points by the grid chunk they fall in with a counting sort.
+
+Each kernel does what the NumPy code it replaced did, value for value: the same float64
+arithmetic for normals and the degenerate-triangle test, the same accumulation order for vertex
+normals, exact bit equality of float32 coordinates for merging (as ``np.unique`` on the raw
+bytes did: -0.0 and 0.0 stay distinct). Only the order of the merged vertices differs: first
+occurrence instead of byte order.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_EMPTY = -1
+
+
+@njit(cache=True)
+def _hash3(a: np.uint64, b: np.uint64, c: np.uint64) -> np.uint64:
+    h = a * np.uint64(0x9E3779B97F4A7C15)
+    h ^= b * np.uint64(0xC2B2AE3D27D4EB4F)
+    h ^= c * np.uint64(0x165667B19E3779F9)
+    return h ^ (h >> np.uint64(29))
+
+
+@njit(cache=True)
+def unique_rows_first(bits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rep, first) for rows of ``bits`` (N,3) uint32: ``rep[i]`` is the rank of row i's first
+    occurrence among the distinct rows, ``first`` the index of each distinct row's first occurrence."""
+    n = bits.shape[0]
+    size = 1
+    while size < 2 * n + 2:
+        size *= 2
+    mask = np.uint64(size - 1)
+    table = np.full(size, _EMPTY, np.int64)  # slot -> distinct row rank
+    first = np.empty(n, np.int64)
+    rep = np.empty(n, np.int64)
+    count = 0
+    for i in range(n):
+        a, b, c = np.uint64(bits[i, 0]), np.uint64(bits[i, 1]), np.uint64(bits[i, 2])
+        slot = _hash3(a, b, c) & mask
+        while True:
+            r = table[slot]
+            if r == _EMPTY:
+                table[slot] = count
+                first[count] = i
+                rep[i] = count
+                count += 1
+                break
+            f = first[r]
+            if bits[f, 0] == bits[i, 0] and bits[f, 1] == bits[i, 1] and bits[f, 2] == bits[i, 2]:
+                rep[i] = r
+                break
+            slot = (slot + np.uint64(1)) & mask
+    return rep, first[:count].copy()
+
+
+@njit(cache=True)
+def _nonzero_area(p: np.ndarray, a: int, b: int, c: int) -> bool:
+    """(p[b] - p[a]) x (p[c] - p[a]) in float64 has a non-zero component."""
+    ax, ay, az = np.float64(p[a, 0]), np.float64(p[a, 1]), np.float64(p[a, 2])
+    ux, uy, uz = np.float64(p[b, 0]) - ax, np.float64(p[b, 1]) - ay, np.float64(p[b, 2]) - az
+    vx, vy, vz = np.float64(p[c, 0]) - ax, np.float64(p[c, 1]) - ay, np.float64(p[c, 2]) - az
+    return (uy * vz - uz * vy) != 0.0 or (uz * vx - ux * vz) != 0.0 or (ux * vy - uy * vx) != 0.0
+
+
+@njit(cache=True)
+def weld_kernel(points: np.ndarray, bits: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge bit-identical float32 points (``bits``: the points viewed as uint32), drop zero-area
+    triangles (float64 cross product of the merged points, exactly zero), drop unused points.
+    Returns (points, triangles)."""
+    rep, first = unique_rows_first(bits)
+    m = triangles.shape[0]
+    keep = np.zeros(m, np.bool_)
+    used = np.zeros(len(first), np.bool_)
+    kept = 0
+    for t in range(m):
+        a, b, c = rep[triangles[t, 0]], rep[triangles[t, 1]], rep[triangles[t, 2]]
+        if _nonzero_area(points, first[a], first[b], first[c]):
+            keep[t] = True
+            used[a] = True
+            used[b] = True
+            used[c] = True
+            kept += 1
+    remap = np.full(len(first), -1, np.int64)
+    count = 0
+    for u in range(len(first)):
+        if used[u]:
+            remap[u] = count
+            count += 1
+    out_pts = np.empty((count, 3), np.float32)
+    for u in range(len(first)):
+        if used[u]:
+            out_pts[remap[u]] = points[first[u]]
+    out_tris = np.empty((kept, 3), np.int64)
+    row = 0
+    for t in range(m):
+        if keep[t]:
+            for v in range(3):
+                out_tris[row, v] = remap[rep[triangles[t, v]]]
+            row += 1
+    return out_pts, out_tris
+
+
+@njit(cache=True)
+def face_normals_kernel(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unnormalised float64 triangle normals (p1 - p0) x (p2 - p0)."""
+    m = triangles.shape[0]
+    out = np.empty((m, 3), np.float64)
+    for t in range(m):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        ax, ay, az = np.float64(points[a, 0]), np.float64(points[a, 1]), np.float64(points[a, 2])
+        ux = np.float64(points[b, 0]) - ax
+        uy = np.float64(points[b, 1]) - ay
+        uz = np.float64(points[b, 2]) - az
+        vx = np.float64(points[c, 0]) - ax
+        vy = np.float64(points[c, 1]) - ay
+        vz = np.float64(points[c, 2]) - az
+        out[t, 0] = uy * vz - uz * vy
+        out[t, 1] = uz * vx - ux * vz
+        out[t, 2] = ux * vy - uy * vx
+    return out
+
+
+@njit(cache=True)
+def vertex_normal_sums(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Sum of the unnormalised normals of the triangles at each vertex (float64, in triangle
+    order: the order ``np.bincount`` over the flattened corners adds them in)."""
+    acc = np.zeros((points.shape[0], 3), np.float64)
+    face = face_normals_kernel(points, triangles)
+    for t in range(triangles.shape[0]):
+        for v in range(3):
+            p = triangles[t, v]
+            acc[p, 0] += face[t, 0]
+            acc[p, 1] += face[t, 1]
+            acc[p, 2] += face[t, 2]
+    return acc
+
+
+@njit(cache=True)
+def group_by_id(ids: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray]:
+    """Counting sort: (order, starts) with ``order[starts[g]:starts[g + 1]]`` the rows whose id is g,
+    in their original order."""
+    starts = np.zeros(n_groups + 1, np.int64)
+    for i in range(ids.shape[0]):
+        starts[ids[i] + 1] += 1
+    for g in range(n_groups):
+        starts[g + 1] += starts[g]
+    pos = starts[:-1].copy()
+    order = np.empty(ids.shape[0], np.int64)
+    for i in range(ids.shape[0]):
+        g = ids[i]
+        order[pos[g]] = i
+        pos[g] += 1
+    return order, starts
+
+
+@njit(cache=True)
+def gather_chunk(out: np.ndarray, buf: np.ndarray, ijk: np.ndarray, rows: np.ndarray,
+                 ox: int, oy: int, oz: int) -> None:
+    """``out[r] = buf[ijk[r] - origin]`` for the rows ``rows`` (all inside ``buf``)."""
+    for n in range(rows.shape[0]):
+        r = rows[n]
+        out[r] = buf[ijk[r, 0] - ox, ijk[r, 1] - oy, ijk[r, 2] - oz]
+
+
+@njit(cache=True)
+def centroid_voxels(points: np.ndarray, triangles: np.ndarray, voxel_size: float) -> np.ndarray:
+    """The voxel nearest each triangle's centroid: rint(((p0 + p1 + p2) / 3) / voxel_size), the
+    sum in float64 and in that order (as ``points[triangles].astype(float64).mean(axis=1)``)."""
+    m = triangles.shape[0]
+    out = np.empty((m, 3), np.int64)
+    for t in range(m):
+        for c in range(3):
+            s = np.float64(points[triangles[t, 0], c]) + np.float64(points[triangles[t, 1], c])
+            s += np.float64(points[triangles[t, 2], c])
+            out[t, c] = np.int64(np.rint(s / 3.0 / voxel_size))
+    return out
+
+
+@njit(cache=True)
+def split_polygons(tris: np.ndarray, quads: np.ndarray, flip: bool) -> np.ndarray:
+    """volumeToMesh's triangles, then each quad (a, b, c, d) as (a, b, c) and, after all of those,
+    (a, c, d); every row reversed when ``flip``. int64 (T + 2Q, 3)."""
+    nt, nq = tris.shape[0], quads.shape[0]
+    out = np.empty((nt + 2 * nq, 3), np.int64)
+    for t in range(nt):
+        out[t, 0], out[t, 1], out[t, 2] = tris[t, 0], tris[t, 1], tris[t, 2]
+    for q in range(nq):
+        a, b, c, d = quads[q, 0], quads[q, 1], quads[q, 2], quads[q, 3]
+        out[nt + q, 0], out[nt + q, 1], out[nt + q, 2] = a, b, c
+        out[nt + nq + q, 0], out[nt + nq + q, 1], out[nt + nq + q, 2] = a, c, d
+    if flip:
+        for t in range(out.shape[0]):
+            out[t, 0], out[t, 2] = out[t, 2], out[t, 0]
+    return out

@@ -189,31 +189,21 @@ def _face_union(level, coords, keys, rows, off):
     every cell (0..count-1, in order of first appearance) and the count."""
     n = level.shape[0]
     parent = np.arange(n)
-    for r in range(n):
-        lv = level[r]
-        for f in range(6):
-            x, y, z = coords[r, 0], coords[r, 1], coords[r, 2]
-            if f == 0:
-                x += 1
-            elif f == 1:
-                x -= 1
-            elif f == 2:
-                y += 1
-            elif f == 3:
-                y -= 1
-            elif f == 4:
-                z += 1
-            else:
-                z -= 1
-            nb = _find_one(x, y, z, lv, keys, rows, off)
-            if nb < 0:
-                continue
-            a, b = _root(parent, r), _root(parent, nb)
-            if a != b:
-                if a < b:
-                    parent[b] = a
-                else:
-                    parent[a] = b
+    chunk = 1 << 20  # rows whose neighbours are searched at once (both cores), 48 MB of them
+    for c0 in range(0, n, chunk):
+        c1 = min(n, c0 + chunk)
+        nbr = _face_neighbours(level, coords, keys, rows, off, c0, c1)
+        for r in range(c0, c1):
+            for f in range(6):
+                nb = nbr[r - c0, f]
+                if nb < 0:
+                    continue
+                a, b = _root(parent, r), _root(parent, nb)
+                if a != b:
+                    if a < b:
+                        parent[b] = a
+                    else:
+                        parent[a] = b
     ids = np.full(n, -1, np.int64)
     out = np.empty(n, np.int64)
     count = 0
@@ -224,6 +214,23 @@ def _face_union(level, coords, keys, rows, off):
             count += 1
         out[r] = ids[a]
     return out, count
+
+
+@numba.njit(cache=True, parallel=True)
+def _face_neighbours(level, coords, keys, rows, off, c0, c1):
+    """(c1 - c0, 6): the row of the same-level or coarser kept cell across each face of cells
+    c0..c1 (+x, -x, +y, -y, +z, -z), -1 where none; the searches of _face_union, both cores."""
+    nbr = np.empty((c1 - c0, 6), np.int64)
+    for i in numba.prange(c1 - c0):
+        r = c0 + i
+        lv = level[r]
+        for f in range(6):
+            d = 1 - 2 * (f & 1)
+            x = coords[r, 0] + (d if f >> 1 == 0 else 0)
+            y = coords[r, 1] + (d if f >> 1 == 1 else 0)
+            z = coords[r, 2] + (d if f >> 1 == 2 else 0)
+            nbr[i, f] = _find_one(x, y, z, lv, keys, rows, off)
+    return nbr
 
 
 # --- Algorithm 1: adaptive spatial continuation --------------------------------------------------
@@ -342,45 +349,66 @@ def _children(coords: np.ndarray) -> np.ndarray:
     return (2 * coords[:, None, :] + _CORNERS[None]).reshape(-1, 3)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _missing_edge_neighbours(coords, vals, have, limit):
     """Algorithm 1, continuation: for every edge whose end signs differ, the cells sharing the
-    edge that are not in ``have`` (sorted packed keys). Returns their coordinates (repeats)."""
-    out = np.empty((0, 3), np.int64)
-    buf = np.empty((1024, 3), np.int64)
-    nbuf = 0
-    for n in range(coords.shape[0]):
-        for a in range(8):
-            for axis in range(3):
-                bit = 4 >> axis
-                if a & bit:
-                    continue
-                b = a | bit
-                if (vals[n, a] > 0) == (vals[n, b] > 0):
-                    continue
-                u = (axis + 1) % 3
-                v = (axis + 2) % 3
-                su = 1 if a & (4 >> u) else -1
-                sv = 1 if a & (4 >> v) else -1
-                for du in range(2):
-                    for dv in range(2):
-                        if du == 0 and dv == 0:
-                            continue
-                        q = coords[n].copy()
-                        q[u] += su * du
-                        q[v] += sv * dv
-                        if q[u] < 0 or q[v] < 0 or q[u] >= limit or q[v] >= limit:
-                            continue
-                        key = (q[0] << 42) | (q[1] << 21) | q[2]
-                        s = np.searchsorted(have, key)
-                        if s < have.shape[0] and have[s] == key:
-                            continue
-                        if nbuf == buf.shape[0]:
-                            out = np.concatenate((out, buf[:nbuf]))
-                            nbuf = 0
-                        buf[nbuf] = q
-                        nbuf += 1
-    return np.concatenate((out, buf[:nbuf]))
+    edge that are not in ``have`` (sorted packed keys). Returns their coordinates (repeats).
+    Two parallel passes (count, then write at each cell's offset): the same rows in the same
+    order as one serial walk."""
+    n = coords.shape[0]
+    count = np.zeros(n + 1, np.int64)
+    dummy = np.empty((0, 3), np.int64)
+    for r in numba.prange(n):
+        count[r + 1] = _edge_neighbours(coords, vals, have, limit, r, dummy, 0)
+    start = np.cumsum(count)
+    out = np.empty((start[n], 3), np.int64)
+    for r in numba.prange(n):
+        if start[r + 1] > start[r]:
+            _edge_neighbours(coords, vals, have, limit, r, out, start[r])
+    return out
+
+
+@numba.njit(cache=True)
+def _edge_neighbours(coords, vals, have, limit, r, out, at):
+    """The missing edge neighbours of cell r, written to out[at:] when out has rows; their count."""
+    found = 0
+    for a in range(8):
+        for axis in range(3):
+            bit = 4 >> axis
+            if a & bit:
+                continue
+            if (vals[r, a] > 0) == (vals[r, a | bit] > 0):
+                continue
+            u = (axis + 1) % 3
+            v = (axis + 2) % 3
+            su = 1 if a & (4 >> u) else -1
+            sv = 1 if a & (4 >> v) else -1
+            for du in range(2):
+                for dv in range(2):
+                    if du == 0 and dv == 0:
+                        continue
+                    q0, q1, q2 = coords[r, 0], coords[r, 1], coords[r, 2]
+                    dq_u, dq_v = su * du, sv * dv
+                    if u == 0:
+                        q0 += dq_u
+                    elif u == 1:
+                        q1 += dq_u
+                    else:
+                        q2 += dq_u
+                    if v == 0:
+                        q0 += dq_v
+                    elif v == 1:
+                        q1 += dq_v
+                    else:
+                        q2 += dq_v
+                    if min(q0, min(q1, q2)) < 0 or max(q0, max(q1, q2)) >= limit:
+                        continue  # only the moved coordinates can leave the lattice
+                    if _bsearch(have, 0, have.shape[0], (q0 << 42) | (q1 << 21) | q2) >= 0:
+                        continue
+                    if out.shape[0]:
+                        out[at + found, 0], out[at + found, 1], out[at + found, 2] = q0, q1, q2
+                    found += 1
+    return found
 
 
 @dataclass

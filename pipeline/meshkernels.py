@@ -28,31 +28,38 @@ def _hash3(a: np.uint64, b: np.uint64, c: np.uint64) -> np.uint64:
 @njit(cache=True)
 def unique_rows_first(bits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(rep, first) for rows of ``bits`` (N,3) uint32: ``rep[i]`` is the rank of row i's first
-    occurrence among the distinct rows, ``first`` the index of each distinct row's first occurrence."""
+    occurrence among the distinct rows, ``first`` the index of each distinct row's first occurrence.
+
+    Open addressing; a slot holds a 31-bit fingerprint of the hash and the rank, so a probe
+    reads one cache line and the rows are compared only when the fingerprints agree."""
     n = bits.shape[0]
     size = 1
     while size < 2 * n + 2:
         size *= 2
     mask = np.uint64(size - 1)
-    table = np.full(size, _EMPTY, np.int64)  # slot -> distinct row rank
+    table = np.full(size, _EMPTY, np.int64)  # slot -> fingerprint << 32 | distinct row rank
     first = np.empty(n, np.int64)
     rep = np.empty(n, np.int64)
     count = 0
+    low = np.int64(0xFFFFFFFF)
     for i in range(n):
-        a, b, c = np.uint64(bits[i, 0]), np.uint64(bits[i, 1]), np.uint64(bits[i, 2])
-        slot = _hash3(a, b, c) & mask
+        h = _hash3(np.uint64(bits[i, 0]), np.uint64(bits[i, 1]), np.uint64(bits[i, 2]))
+        fp = np.int64((h >> np.uint64(33)) & np.uint64(0x7FFFFFFF))
+        slot = h & mask
         while True:
-            r = table[slot]
-            if r == _EMPTY:
-                table[slot] = count
+            e = table[slot]
+            if e == _EMPTY:
+                table[slot] = (fp << 32) | count
                 first[count] = i
                 rep[i] = count
                 count += 1
                 break
-            f = first[r]
-            if bits[f, 0] == bits[i, 0] and bits[f, 1] == bits[i, 1] and bits[f, 2] == bits[i, 2]:
-                rep[i] = r
-                break
+            if (e >> 32) == fp:
+                r = e & low
+                f = first[r]
+                if bits[f, 0] == bits[i, 0] and bits[f, 1] == bits[i, 1] and bits[f, 2] == bits[i, 2]:
+                    rep[i] = r
+                    break
             slot = (slot + np.uint64(1)) & mask
     return rep, first[:count].copy()
 

@@ -19,8 +19,8 @@ from typing import Any
 
 import matplotlib
 import numpy as np
-import vtk
-from vtk.util import numpy_support as nps
+from vtkmodules.util import numpy_support as nps
+from vtkmodules.vtkFiltersCore import vtkQuadricClustering
 
 from pipeline.atomic import atomic_path
 from pipeline.report import SURFACE_PNG
@@ -163,14 +163,18 @@ def _save(fig: Figure, path: Path, dpi: int) -> None:
         fig.savefig(tmp, dpi=dpi, format="png", facecolor="white")
 
 
+_SLICE_GRID = {"left": 0.055, "right": 0.91, "bottom": 0.1, "top": 0.85, "wspace": 0.26}
+_SLICE_BAR = (0.935, 0.12, 0.011, 0.7)  # colour bar axes (figure fractions)
+
+
 def slice_figure(name: str, grid: Any, slices: list[Slice], ref: list[Slice] | None, ref_iso: float,
                  ) -> Figure:
     """Three slice panels of one grid with a shared colour bar."""
     vrange = (0.0, 1.0) if is_vector(grid) else value_range(grid, slices)
     kind = _kind(name, grid, vrange)
     cmap, norm = _norm_cmap(kind, vrange) if kind != "rgb" else (None, mcolors.Normalize())
-    fig = Figure(figsize=(15, 5.2), layout="constrained")
-    axes = fig.subplots(1, 3)
+    fig = Figure(figsize=(15, 5.2))  # a fixed layout: constrained layout measured every tick label twice
+    axes = fig.subplots(1, 3, gridspec_kw=_SLICE_GRID)
     image = None
     for n, (ax, sl) in enumerate(zip(axes, slices, strict=True)):
         image = _draw_slice(ax, sl, kind, cmap, norm)
@@ -181,7 +185,7 @@ def slice_figure(name: str, grid: Any, slices: list[Slice], ref: list[Slice] | N
         ax.set_title(f"{AXES[sl.axis]} = {sl.position:.4g}")
         ax.set_aspect("equal")
     if kind != "rgb":
-        bar = fig.colorbar(image, ax=list(axes), shrink=0.9, label=_bar_label(name, kind))
+        bar = fig.colorbar(image, cax=fig.add_axes(_SLICE_BAR), label=_bar_label(name, kind))
         if kind == "labels" and norm.vmax <= 21:
             bar.set_ticks(np.arange(1, int(norm.vmax - 0.5) + 1))
     line = "white" if kind == "rgb" else "black"
@@ -230,7 +234,7 @@ def decimate(mesh: SurfaceMesh, max_faces: int) -> tuple[np.ndarray, np.ndarray]
     """(points, triangles) with at most about ``max_faces`` triangles (VTK quadric clustering)."""
     if len(mesh.triangles) <= max_faces:
         return mesh.points, mesh.triangles
-    clus = vtk.vtkQuadricClustering()
+    clus = vtkQuadricClustering()
     divisions = int(np.sqrt(max_faces / 2.0))
     clus.SetNumberOfDivisions(divisions, divisions, divisions)
     clus.SetInputData(mesh_polydata(mesh))
@@ -271,7 +275,7 @@ def _face_colours(normals: np.ndarray, labels: np.ndarray | None, light: np.ndar
         base = np.tile(mcolors.to_rgb("#c9a66b"), (len(normals), 1))
     else:
         cmap, _ = _label_cmap(int(max(labels.max(), 1)))
-        base = np.array([cmap((max(int(k), 1) - 1) % cmap.N)[:3] for k in labels]).reshape(-1, 3)
+        base = cmap((np.maximum(np.asarray(labels, np.int64), 1) - 1) % cmap.N)[:, :3]  # one call, not one a face
     return np.column_stack([base * shade[:, None], np.ones(len(normals))])
 
 
@@ -330,7 +334,7 @@ def render_surface(path: str | os.PathLike, mesh: SurfaceMesh, component: Any | 
     ax.set_aspect("equal")
     ax.set_axis_off()
     if labels is not None:
-        ids = sorted({int(k) for k in labels if k > 0})
+        ids = [int(k) for k in np.unique(labels) if k > 0]
         cmap, _ = _label_cmap(max(ids, default=1))
         ax.legend(handles=[Patch(color=cmap((k - 1) % cmap.N), label=f"component {k}") for k in ids[:20]],
                   loc="upper right")

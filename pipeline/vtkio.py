@@ -263,6 +263,8 @@ def _field(name: str, values: Iterable[float]) -> vtkDoubleArray:
 def _write(writer: vtkXMLWriter | vtkWriter, data: Any, path: Path) -> None:
     if isinstance(writer, vtkXMLWriter):  # LZ4: a fraction of zlib's time, ParaView reads it
         writer.SetCompressorTypeToLZ4()
+        # appended data raw, not base64 (ParaView's own default): half the write time, 3/4 of the size
+        writer.EncodeAppendedDataOff()
     with atomic_path(path) as tmp:
         writer.SetFileName(str(tmp))
         writer.SetInputData(data)

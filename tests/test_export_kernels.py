@@ -196,6 +196,8 @@ def test_vti_holds_every_strided_value(tmp_path: Path, max_points: int) -> None:
     reader.SetFileName(str(tmp_path / "s.vti"))
     reader.Update()
     image = reader.GetOutput()
+    head = (tmp_path / "s.vti").read_bytes()[:4096]
+    assert b'<AppendedData encoding="raw">' in head and b'compressor="vtkLZ4DataCompressor"' in head
     lo, hi = vtkio.union_active_bbox(grids.values())
     s = info["stride"]
     assert s == vtkio.vti_stride(hi - lo + 1, max_points) and (s > 1) == (max_points < 10**6)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import numba
 import numpy as np
 from numba import njit
 
@@ -102,65 +103,87 @@ def _load_padded(vals, act, nbr, b, buf, abuf):
                 buf[u + 1, v + 1, 9], abuf[u + 1, v + 1, 9] = vals[n, u, v, 0], act[n, u, v, 0]
 
 
-@njit(cache=True)
-def _gradient_hist(vals, act, nbr, h, hist):
+def _chunks(n_blocks: int) -> int:
+    """Work ranges for the parallel block loops (a few per thread, none for tiny grids)."""
+    return max(1, min(4 * numba.get_num_threads(), n_blocks // 256))
+
+
+@njit(cache=True, parallel=True)
+def _gradient_hist(vals, act, nbr, h, hist, chunks):
     """Histogram of |central-difference gradient| over voxels whose 6 face neighbours are
     active (no per-voxel output: constant memory however large the grid). Returns (n, sum);
     values beyond HIST_MAX land in the last bin. Each block is read once into a buffer with
-    its face layers, so the voxel loop has no neighbour lookups."""
-    n = 0
-    total = 0.0
+    its face layers, so the voxel loop has no neighbour lookups. The blocks are split into
+    ``chunks`` ranges run in parallel, each with its own histogram (counts are exact; the sum
+    is added per range)."""
     nb = hist.shape[0]
     scale = nb / HIST_MAX
     inv = 1.0 / (2.0 * h)
-    buf = np.zeros((10, 10, 10))
-    abuf = np.zeros((10, 10, 10), dtype=np.bool_)
-    for b in range(vals.shape[0]):
-        _load_padded(vals, act, nbr, b, buf, abuf)
-        for i in range(1, 9):
-            for j in range(1, 9):
-                for k in range(1, 9):
-                    if not (abuf[i, j, k] and abuf[i - 1, j, k] and abuf[i + 1, j, k] and abuf[i, j - 1, k]
-                            and abuf[i, j + 1, k] and abuf[i, j, k - 1] and abuf[i, j, k + 1]):
-                        continue
-                    dx = buf[i + 1, j, k] - buf[i - 1, j, k]
-                    dy = buf[i, j + 1, k] - buf[i, j - 1, k]
-                    dz = buf[i, j, k + 1] - buf[i, j, k - 1]
-                    g = math.sqrt(dx * dx + dy * dy + dz * dz) * inv
-                    hist[min(int(g * scale), nb - 1)] += 1
-                    n += 1
-                    total += g
-    return n, total
-
-
-@njit(cache=True)
-def _sign_flips(vals, act, ref, ref_act, nbr):
-    """Edges (+x,+y,+z) between active voxels where ``vals`` changes sign and ``ref`` does not
-    (both read per block into buffers with their face layers)."""
-    extra = 0
-    edges = 0
-    vb = np.zeros((10, 10, 10))
-    ab = np.zeros((10, 10, 10), dtype=np.bool_)
-    rb = np.zeros((10, 10, 10))
-    rab = np.zeros((10, 10, 10), dtype=np.bool_)
-    for b in range(vals.shape[0]):
-        _load_padded(vals, act, nbr, b, vb, ab)
-        _load_padded(ref, ref_act, nbr, b, rb, rab)
-        for i in range(1, 9):
-            for j in range(1, 9):
-                for k in range(1, 9):
-                    if not (ab[i, j, k] and rab[i, j, k]):
-                        continue
-                    for f in range(3):
-                        ii, jj, kk = i + (f == 0), j + (f == 1), k + (f == 2)
-                        if not (ab[ii, jj, kk] and rab[ii, jj, kk]):
+    nblk = vals.shape[0]
+    hists = np.zeros((chunks, nb), np.int64)
+    ns = np.zeros(chunks, np.int64)
+    totals = np.zeros(chunks)
+    for c in numba.prange(chunks):
+        buf = np.zeros((10, 10, 10))
+        abuf = np.zeros((10, 10, 10), dtype=np.bool_)
+        n = 0
+        total = 0.0
+        for b in range(c * nblk // chunks, (c + 1) * nblk // chunks):
+            _load_padded(vals, act, nbr, b, buf, abuf)
+            for i in range(1, 9):
+                for j in range(1, 9):
+                    for k in range(1, 9):
+                        if not (abuf[i, j, k] and abuf[i - 1, j, k] and abuf[i + 1, j, k] and abuf[i, j - 1, k]
+                                and abuf[i, j + 1, k] and abuf[i, j, k - 1] and abuf[i, j, k + 1]):
                             continue
-                        edges += 1
-                        flip = (vb[i, j, k] > 0) != (vb[ii, jj, kk] > 0)
-                        ref_flip = (rb[i, j, k] > 0) != (rb[ii, jj, kk] > 0)
-                        if flip and not ref_flip:
-                            extra += 1
-    return extra, edges
+                        dx = buf[i + 1, j, k] - buf[i - 1, j, k]
+                        dy = buf[i, j + 1, k] - buf[i, j - 1, k]
+                        dz = buf[i, j, k + 1] - buf[i, j, k - 1]
+                        g = math.sqrt(dx * dx + dy * dy + dz * dz) * inv
+                        hists[c, min(int(g * scale), nb - 1)] += 1
+                        n += 1
+                        total += g
+        ns[c] = n
+        totals[c] = total
+    for c in range(chunks):
+        hist += hists[c]
+    return ns.sum(), totals.sum()
+
+
+@njit(cache=True, parallel=True)
+def _sign_flips(vals, act, ref, ref_act, nbr, chunks):
+    """Edges (+x,+y,+z) between active voxels where ``vals`` changes sign and ``ref`` does not
+    (both read per block into buffers with their face layers); ``chunks`` block ranges in
+    parallel."""
+    nblk = vals.shape[0]
+    out = np.zeros((chunks, 2), np.int64)
+    for c in numba.prange(chunks):
+        vb = np.zeros((10, 10, 10))
+        ab = np.zeros((10, 10, 10), dtype=np.bool_)
+        rb = np.zeros((10, 10, 10))
+        rab = np.zeros((10, 10, 10), dtype=np.bool_)
+        extra = 0
+        edges = 0
+        for b in range(c * nblk // chunks, (c + 1) * nblk // chunks):
+            _load_padded(vals, act, nbr, b, vb, ab)
+            _load_padded(ref, ref_act, nbr, b, rb, rab)
+            for i in range(1, 9):
+                for j in range(1, 9):
+                    for k in range(1, 9):
+                        if not (ab[i, j, k] and rab[i, j, k]):
+                            continue
+                        for f in range(3):
+                            ii, jj, kk = i + (f == 0), j + (f == 1), k + (f == 2)
+                            if not (ab[ii, jj, kk] and rab[ii, jj, kk]):
+                                continue
+                            edges += 1
+                            flip = (vb[i, j, k] > 0) != (vb[ii, jj, kk] > 0)
+                            ref_flip = (rb[i, j, k] > 0) != (rb[ii, jj, kk] > 0)
+                            if flip and not ref_flip:
+                                extra += 1
+        out[c, 0] = extra
+        out[c, 1] = edges
+    return out[:, 0].sum(), out[:, 1].sum()
 
 
 def central_gradient(grid: BlockGrid) -> tuple[np.ndarray, np.ndarray]:
@@ -182,7 +205,8 @@ def gradient_stats(grid: BlockGrid, mask: Callable[[np.ndarray], np.ndarray] | N
     """
     if mask is None:
         hist = np.zeros(HIST_BINS, np.int64)
-        n, total = _gradient_hist(grid.values, grid.active, block_neighbours(grid), float(grid.voxel_size), hist)
+        n, total = _gradient_hist(grid.values, grid.active, block_neighbours(grid), float(grid.voxel_size), hist,
+                                  _chunks(len(grid.values)))
         return _hist_stats(hist, n, total)
     ijk, g = central_gradient(grid)
     if len(ijk):
@@ -285,7 +309,8 @@ def extra_zero_crossings(field: BlockGrid, reference: BlockGrid) -> dict:
     ref_act = np.zeros(field.values.shape, dtype=bool)
     ref[has] = reference.values[rows[has]]
     ref_act[has] = reference.active[rows[has]]
-    extra, edges = _sign_flips(field.values, field.active, ref, ref_act, block_neighbours(field))
+    extra, edges = _sign_flips(field.values, field.active, ref, ref_act, block_neighbours(field),
+                               _chunks(len(field.values)))
     return {"extra_zero_crossings": int(extra), "edges_compared": int(edges)}
 
 

@@ -68,6 +68,10 @@ class EikonalResult:
     max_distance: float | None
     stats: dict = field(default_factory=dict)
     coarse_inside: np.ndarray | None = None  # (C,3) origins of inside blocks left to a coarse solve
+    # with ``inside_distance``: rows of the solved blocks that hold inside voxels (in the domain)
+    # deeper than the limit, left unsolved, and those voxels (R,8,8,8); the coarse solve fills them
+    deep_rows: np.ndarray | None = None
+    deep_mask: np.ndarray | None = None
 
 
 # --- block topology ---------------------------------------------------------------------
@@ -289,7 +293,10 @@ def solve_distance(
     executor's ``map``; inline when None) with ghost exchange (:mod:`pipeline.eikonal_bricks`).
     ``inside_distance``: how deep (world units) to solve inside; None: the whole interior. The
     inside blocks that cannot hold a voxel that close to the band are left out and listed in
-    ``coarse_inside`` (pipeline.hfim.interior_tiles solves them on leaf-sized cells).
+    ``coarse_inside`` (pipeline.hfim.interior_tiles solves them on leaf-sized cells); inside
+    voxels of the kept blocks whose distance exceeds it are not accepted (the same per-voxel
+    cut-off as ``max_distance`` outside): blocks left without a solved voxel join
+    ``coarse_inside``, the others are listed in ``deep_rows`` / ``deep_mask``.
     """
     if order not in (1, 2):
         raise ValueError(f"order must be 1 or 2, not {order!r}")
@@ -321,18 +328,27 @@ def solve_distance(
     t1 = time.perf_counter()
     seeds = np.nonzero((state == FROZEN).reshape(len(d), -1).any(axis=1))[0]
     limit = np.inf if max_vox is None else max_vox
+    limit_in = np.inf if deep is None else deep
     if brick:
         solver = BrickedFIM(d, state, inside, nbr27, brick, grid.origins, map_fn)
         passes = {"bricks": solver.n_bricks,
-                  **_solve(solver.pass_runner(limit, tol, max_sweeps), d, state, seeds, order)}
+                  **_solve(solver.pass_runner(limit, tol, max_sweeps, limit_in), d, state, seeds, order)}
     else:
-        passes = _solve(_flat_pass(d, state, inside, nbr27, block_colour(grid.origins), limit, tol, max_sweeps),
-                        d, state, seeds, order)
+        passes = _solve(_flat_pass(d, state, inside, nbr27, block_colour(grid.origins), limit, tol, max_sweeps,
+                                   limit_in), d, state, seeds, order)
     t2 = time.perf_counter()
 
     solved = np.isfinite(d)
     origins = grid.origins
-    del grid, f, fact, sign  # free the working copies before the output is made
+    deep_rows = deep_mask = None
+    if deep is not None:  # the inside beyond ``limit_in`` goes to the coarse solve
+        d, solved, inside, origins, state, coarse_inside, n_dropped = _drop_unsolved(
+            d, solved, inside, origins, state, fact, coarse_inside)
+        left = inside & ~solved & (state != EXCLUDED)
+        deep_rows = np.flatnonzero(left.reshape(len(left), -1).any(axis=1))
+        deep_mask = left[deep_rows]
+        del left
+    del grid, f, fact, sign, state  # free the working copies before the output is made
     d *= h  # in place: at 1024^3 every full-size temporary costs gigabytes
     bg = float(max_distance) if max_distance is not None else float(d[solved].max(initial=0.0))
     d[~solved] = bg
@@ -353,8 +369,24 @@ def solve_distance(
     if coarse_inside is not None:
         stats["inside_distance"] = float(inside_distance)
         stats["coarse_inside_blocks"] = int(len(coarse_inside))
+        stats["unsolved_blocks_dropped"] = int(n_dropped)
+        stats["deep_voxels_in_fine_blocks"] = int(deep_mask.sum())
     return EikonalResult(dist, inside, None if max_distance is None else float(max_distance), stats,
-                         coarse_inside)
+                         coarse_inside, deep_rows, deep_mask)
+
+
+def _drop_unsolved(d, solved, inside, origins, state, fact, coarse_inside):
+    """Remove the non-band blocks without a solved voxel (the inside limit left them to the
+    coarse solve, or they lie beyond max_distance outside); the inside ones join
+    ``coarse_inside``. Returns the arrays without them, the new coarse list and the count."""
+    none = ~solved.reshape(len(d), -1).any(axis=1) & ~fact.reshape(len(d), -1).any(axis=1)
+    if not none.any():
+        return d, solved, inside, origins, state, coarse_inside, 0
+    gone_inside = none & inside.reshape(len(d), -1).all(axis=1)
+    coarse_inside = np.concatenate([coarse_inside, origins[gone_inside]])
+    coarse_inside = coarse_inside[np.argsort(pack_keys(coarse_inside), kind="stable")]
+    keep = np.flatnonzero(~none)
+    return d[keep], solved[keep], inside[keep], origins[keep], state[keep], coarse_inside, int(none.sum())
 
 
 def _solve(run_pass, d, state, seeds, order: int) -> dict:
@@ -381,11 +413,11 @@ def _solve(run_pass, d, state, seeds, order: int) -> dict:
             "converged": second["converged"]}
 
 
-def _flat_pass(d, state, inside, nbr27, colour, limit, tol, max_sweeps):
+def _flat_pass(d, state, inside, nbr27, colour, limit, tol, max_sweeps, limit_in=np.inf):
     def run(seeds, order2, visits_per_block):
         cap = visits_per_block * max(len(d), 1)
         visits, updates, sweeps, ok = fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2,
-                                          cap)
+                                          cap, limit_in)
         return {"block_visits": int(visits), "voxel_updates": int(updates), "sweeps": int(sweeps),
                 "converged": bool(ok)}
     return run
@@ -457,15 +489,26 @@ def surface_blocks(result: EikonalResult, band: float, full: bool = False) -> Bl
     surface are active, the rest hold -background inside and +background outside. ``full``
     keeps every solved voxel active (the whole interior and the outside up to max_distance).
     """
+    bg = float(band) * result.distance.voxel_size
+    if not full:  # only the blocks that hold a band voxel are converted
+        return _narrow_band(result, bg)
     sd = signed_distance_blocks(result)
-    bg = float(band) * sd.voxel_size
-    active = sd.active if full else sd.active & (np.abs(sd.values) <= bg)
     values = sd.values
-    values[~active] = np.where(result.inside[~active], -bg, bg)
-    keep = active.reshape(len(active), -1).any(axis=1) | full
-    if not full:  # a narrow band only needs the blocks it touches (signedFloodFill does the rest)
-        return BlockGrid(sd.voxel_size, bg, sd.origins[keep], values[keep], active[keep])
-    return BlockGrid(sd.voxel_size, bg, sd.origins, values, active)
+    values[~sd.active] = np.where(result.inside[~sd.active], -bg, bg)
+    return BlockGrid(sd.voxel_size, bg, sd.origins, values, sd.active)
+
+
+def _narrow_band(result: EikonalResult, bg: float) -> BlockGrid:
+    """:func:`surface_blocks` without ``full``: the same values, built on the blocks that hold a
+    voxel within ``bg`` of the surface (the unsigned distance is compared, so the signed copy
+    of the whole grid is never made; a narrow band only needs the blocks it touches,
+    signedFloodFill does the rest)."""
+    dist = result.distance
+    near = dist.active & (dist.values <= bg)
+    rows = np.flatnonzero(near.reshape(len(near), -1).any(axis=1))
+    active, v, ins = near[rows], dist.values[rows], result.inside[rows]
+    values = np.where(active, np.where(ins, -v, v), np.where(ins, -bg, bg)).astype(np.float32)
+    return BlockGrid(dist.voxel_size, bg, dist.origins[rows], values, active)
 
 
 def surface_grid(result: EikonalResult, band: float, name: str = "surface", full: bool = False):

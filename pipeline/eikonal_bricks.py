@@ -36,12 +36,12 @@ def relax_brick(task: tuple) -> tuple[np.ndarray, np.ndarray, tuple]:
     """Worker side of one brick: the block FIM on its own blocks, ghost blocks read-only.
 
     ``task`` = (d, state, inside, nbr27, colour, n_own, seeds, limit, tol, max_sweeps, order2,
-    max_visits) over the local blocks (own first, then ghosts). Returns (own distances,
+    max_visits, limit_in) over the local blocks (own first, then ghosts). Returns (own distances,
     own blocks that changed, (visits, updates, sweeps, converged)).
     """
-    d, state, inside, nbr27, colour, n_own, seeds, limit, tol, max_sweeps, order2, max_visits = task
+    d, state, inside, nbr27, colour, n_own, seeds, limit, tol, max_sweeps, order2, max_visits, limit_in = task
     before = d[:n_own].copy()
-    counters = fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits)
+    counters = fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, limit_in)
     own = d[:n_own]
     changed = np.nonzero(((own != before) & ~(np.isinf(own) & np.isinf(before))).reshape(n_own, -1).any(axis=1))[0]
     return own, changed, counters
@@ -66,7 +66,7 @@ class BrickedFIM:
             self.ghosts.append(n[self.brick_of[n] != self.brick_of[blocks[0]]] if len(blocks) else n)
 
     def solve(self, seeds: np.ndarray, limit: float, tol: float, max_sweeps: int, order2: bool,
-              visits_per_block: int) -> dict:
+              visits_per_block: int, limit_in: float = np.inf) -> dict:
         """Run rounds from the global ``seeds`` until no brick has work, or until the block
         visits of all rounds pass ``visits_per_block`` per block (then ``converged`` is
         False: the bound of a non-monotone pass). Counters for the manifest."""
@@ -78,7 +78,8 @@ class BrickedFIM:
         converged = True
         while any(pending) and converged and totals["block_visits"] < budget:
             work = [b for b in range(self.n_bricks) if pending[b]]
-            tasks = [self._task(b, pending[b], limit, tol, max_sweeps, order2, visits_per_block) for b in work]
+            tasks = [self._task(b, pending[b], limit, tol, max_sweeps, order2, visits_per_block, limit_in)
+                     for b in work]
             pending = [set() for _ in range(self.n_bricks)]
             for b, (own_d, changed, (visits, updates, sweeps, ok)) in zip(work, self.map(relax_brick, tasks),
                                                                           strict=True):
@@ -93,13 +94,13 @@ class BrickedFIM:
         totals["converged"] = converged and not any(pending)
         return totals
 
-    def pass_runner(self, limit: float, tol: float, max_sweeps: int):
+    def pass_runner(self, limit: float, tol: float, max_sweeps: int, limit_in: float = np.inf):
         """``run_pass(seeds, order2, visits_per_block)`` for :func:`pipeline.eikonal._solve`."""
         def run(seeds, order2, visits_per_block):
-            return self.solve(seeds, limit, tol, max_sweeps, order2, visits_per_block)
+            return self.solve(seeds, limit, tol, max_sweeps, order2, visits_per_block, limit_in)
         return run
 
-    def _task(self, b: int, seeds: set, limit, tol, max_sweeps, order2, visits_per_block) -> tuple:
+    def _task(self, b: int, seeds: set, limit, tol, max_sweeps, order2, visits_per_block, limit_in) -> tuple:
         own, ghost = self.own[b], self.ghosts[b]
         rows = np.concatenate([own, ghost])
         nbr = _local_index(rows, self.nbr27[rows])
@@ -107,7 +108,7 @@ class BrickedFIM:
         state[len(own):] = FROZEN  # ghosts are read-only boundary values
         local_seeds = _local_index(rows, np.fromiter(seeds, np.int64, len(seeds)))
         return (self.d[rows].copy(), state, self.inside[rows], nbr, self.colour[rows], len(own), np.sort(local_seeds),
-                limit, tol, max_sweeps, order2, visits_per_block * len(own))
+                limit, tol, max_sweeps, order2, visits_per_block * len(own), limit_in)
 
     def _schedule(self, changed: np.ndarray, pending: list[set]) -> None:
         """Blocks of other bricks that touch a changed block go on their brick's seed list."""

@@ -137,11 +137,12 @@ def _axis_term(buf, sbuf, i, j, k, di, dj, dk, me, order2):
 
 
 @njit(cache=True)
-def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf, sbuf):
+def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf, sbuf, limit_in=np.inf):
     """Gauss-Seidel sweeps (alternating the 8 orderings) until block b converges.
 
     First order accepts only decreases (monotone scheme from above); second order accepts
-    any change larger than ``tol``. Returns (bitmask of faces whose ghost layers changed,
+    any change larger than ``tol``. A value above ``limit`` (outside voxels) or ``limit_in``
+    (inside voxels) is never accepted. Returns (bitmask of faces whose ghost layers changed,
     voxel updates, sweeps).
     """
     _load_block(d, inside, nbr27, b, buf, sbuf)
@@ -168,7 +169,7 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
                     if bx == np.inf and by == np.inf and bz == np.inf:
                         continue
                     u = upwind3(bx, wx, by, wy, bz, wz)
-                    if u > limit and not me:
+                    if u > (limit_in if me else limit):
                         continue
                     old = buf[i + 2, j + 2, k + 2]
                     if order2:
@@ -191,7 +192,7 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
     return faces, updates, sweeps
 
 
-def fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits):
+def fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, limit_in=np.inf):
     """Block Fast Iterative Method (Jeong & Whitaker 2008, Alg. 1 with blocks as list items),
     red-black over the block lattice.
 
@@ -201,15 +202,17 @@ def fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, 
     own voxels and reads ghost layers of the other colour, which no one writes during the
     wave. The result does not depend on the number of threads. A relaxed block puts the face
     neighbours whose ghost layers it changed on the list (of the other colour).
-    ``max_visits`` bounds the work of the (non-monotone) second-order pass. Small problems
+    ``max_visits`` bounds the work of the (non-monotone) second-order pass. ``limit`` /
+    ``limit_in``: largest value accepted outside / inside (voxels). Small problems
     run the serial kernel (a parallel launch costs more than they take). Returns (block
     visits, voxel updates, sweeps, converged).
     """
     if len(d) < PARALLEL_BLOCKS:
-        return _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits)
+        return _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits,
+                           float(limit_in))
     chunks = 2 * numba.get_num_threads()  # two chunks per thread: some balance for uneven blocks
     return _fim_parallel(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits,
-                         chunks)
+                         chunks, float(limit_in))
 
 
 @njit(cache=True)
@@ -256,14 +259,14 @@ def _finish_wave(work, out, nbr27, colour, lists, counts, on_list):
 
 
 @njit(cache=True)
-def _relax_range(d, state, inside, nbr27, work, lo, hi, limit, tol, max_sweeps, order2, buf, sbuf, out):
+def _relax_range(d, state, inside, nbr27, work, lo, hi, limit, tol, max_sweeps, order2, buf, sbuf, out, limit_in):
     for t in range(lo, hi):
         out[t, 0], out[t, 1], out[t, 2] = relax_block(d, state, inside, nbr27, work[t], limit, tol, max_sweeps,
-                                                      order2, buf, sbuf)
+                                                      order2, buf, sbuf, limit_in)
 
 
 @njit(cache=True)
-def _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits):
+def _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, limit_in):
     """:func:`fim` on one thread (the same waves, so the same result)."""
     lists, counts, on_list = _seed_lists(colour, seeds, d.shape[0])
     buf = np.empty((12, 12, 12))
@@ -276,7 +279,8 @@ def _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, 
         if counts[c] > 0:
             work = _take_wave(lists, counts, on_list, c)
             out = np.zeros((len(work), 3), dtype=np.int64)
-            _relax_range(d, state, inside, nbr27, work, 0, len(work), limit, tol, max_sweeps, order2, buf, sbuf, out)
+            _relax_range(d, state, inside, nbr27, work, 0, len(work), limit, tol, max_sweeps, order2, buf, sbuf, out,
+                         limit_in)
             v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list)
             visits, updates, sweeps = visits + v, updates + u, sweeps + w
         c = 1 - c
@@ -284,7 +288,8 @@ def _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, 
 
 
 @njit(cache=True, parallel=True)
-def _fim_parallel(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, chunks):
+def _fim_parallel(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, chunks,
+                  limit_in):
     """:func:`fim` with each wave split into ``chunks`` ranges relaxed in parallel (one buffer
     per range)."""
     lists, counts, on_list = _seed_lists(colour, seeds, d.shape[0])
@@ -302,7 +307,7 @@ def _fim_parallel(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps
             k = min(chunks, m)
             for ch in numba.prange(k):
                 _relax_range(d, state, inside, nbr27, work, ch * m // k, (ch + 1) * m // k, limit, tol, max_sweeps,
-                             order2, bufs[ch], sbufs[ch], out)
+                             order2, bufs[ch], sbufs[ch], out, limit_in)
             v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list)
             visits, updates, sweeps = visits + v, updates + u, sweeps + w
         c = 1 - c
@@ -394,7 +399,6 @@ def closest_point_distance(f0, g, hess, iterations=12):
     return math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
 
 
-@njit(cache=True)
 def init_interface(f, fact, d, state, nbr27, quadric):
     """Freeze the voxels next to a sign change with sub-voxel distances (voxel units).
 
@@ -404,13 +408,26 @@ def init_interface(f, fact, d, state, nbr27, quadric):
     otherwise ``|f| / |grad f|``, the distance to the tangent plane. Both are capped by the
     linearly interpolated axis crossings (points on the surface up to O(h^2)); the quadric
     distance is rejected when it exceeds that cap by more than a tenth of a voxel (a kink of
-    the surface inside the stencil). Returns (frozen voxels, voxels initialised by the quadric).
+    the surface inside the stencil). Only blocks with band voxels are visited, in parallel
+    (each writes only its own voxels and reads frep, which nobody writes: the result does not
+    depend on the threads). Returns (frozen voxels, voxels initialised by the quadric).
     """
-    count = 0
-    n_quad = 0
-    g = np.empty(3)
-    hess = np.empty((3, 3))
-    for b in range(f.shape[0]):
+    rows = np.flatnonzero(fact.reshape(len(fact), -1).any(axis=1))
+    counts = np.zeros((len(rows), 2), np.int64)
+    if len(rows):
+        _init_rows(f, fact, d, state, nbr27, quadric, rows, counts)
+    return int(counts[:, 0].sum()), int(counts[:, 1].sum())
+
+
+@njit(cache=True, parallel=True)
+def _init_rows(f, fact, d, state, nbr27, quadric, rows, counts):
+    """:func:`init_interface` over the blocks ``rows``; (frozen, quadric) per row into ``counts``."""
+    for t in numba.prange(len(rows)):
+        b = rows[t]
+        g = np.empty(3)
+        hess = np.empty((3, 3))
+        count = 0
+        n_quad = 0
         for i in range(8):
             for j in range(8):
                 for k in range(8):
@@ -437,7 +454,8 @@ def init_interface(f, fact, d, state, nbr27, quadric):
                     d[b, i, j, k] = dist
                     state[b, i, j, k] = FROZEN
                     count += 1
-    return count, n_quad
+        counts[t, 0] = count
+        counts[t, 1] = n_quad
 
 
 @njit(cache=True)

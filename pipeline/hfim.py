@@ -31,6 +31,7 @@ one value per cell: the memory grows with the object's area, not with the domain
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -213,16 +214,18 @@ def _parents(lat_lo: np.ndarray, shape, cell: int, coarser: int) -> np.ndarray:
     return idx // r - np.floor_divide(lat_lo, r)
 
 
-def _fine_nodes(fine: EikonalResult, lat_lo: np.ndarray, shape):
+def _fine_nodes(fine: EikonalResult, lat_lo: np.ndarray, shape, centre: bool = False):
     """Level-1 (leaf) node values from the fine solve: mean of the 8 voxels around each leaf
-    centre (the trilinear value there); frozen where the whole leaf is solved."""
+    centre (the trilinear value there); frozen where the whole leaf is solved (``centre``:
+    where those 8 voxels are solved)."""
     dist = fine.distance
     h = float(dist.voxel_size)
     vals = np.full(shape, np.inf)
     frozen = np.zeros(shape, bool)
     p = (dist.origins >> 3) - lat_lo
     ok = np.all((p >= 0) & (p < np.array(shape)), axis=1)
-    full = dist.active.reshape(len(dist.active), -1).all(axis=1) & ok
+    solved = dist.active[:, 3:5, 3:5, 3:5] if centre else dist.active
+    full = solved.reshape(len(solved), -1).all(axis=1) & ok
     centre = dist.values[:, 3:5, 3:5, 3:5].reshape(len(dist.values), -1).mean(axis=1) / h
     idx = tuple(p[full].T)
     vals[idx] = centre[full]
@@ -314,41 +317,148 @@ def hierarchical_distance(
 
 
 def interior_tiles(fine: EikonalResult, domain_index_bounds, order: int = 2, tol: float = 1e-6
-                   ) -> tuple[np.ndarray, np.ndarray, dict]:
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Distance on the inside blocks the fine solve left out (``fine.coarse_inside``), one value
     per leaf-sized cell: the level-1 step of :func:`hierarchical_distance` turned inwards. Nodes
-    sit at leaf centres (spacing 8 voxels); a node whose leaf the fine level solved completely is
-    frozen at the fine value there (mean of the 8 voxels around the centre), the nodes of the
-    left-out blocks are solved by the node FIM (first order, then second order as the fine
-    solve), every other node is excluded. Returns (tile origins (C,3), distance in world units
-    at each tile's centre, counters). The written tile holds that one value for its 8^3 voxels:
-    within the node's FIM error plus 4 sqrt(3) voxels (the distance is 1-Lipschitz) of the fine
-    solve; docs/hfim.md gives the measured error."""
+    sit at leaf centres (spacing 8 voxels); a node whose 8 centre voxels the fine level solved is
+    frozen at the fine value there (their mean); the other nodes of the left-out blocks and of
+    the fine blocks with inside voxels left unsolved (``fine.deep_rows``: deeper than the fine
+    solve's inside limit) are solved by the node FIM (first order, then second order as the
+    fine solve); every other node is excluded. Returns (tile origins (C,3), distance in world
+    units at each tile's centre, the node value of each ``deep_rows`` block (at least the
+    limit; :func:`fill_deep` uses it where a block has no solved shell), counters). A tile
+    holds that one value for its 8^3 voxels: within the node's FIM error plus 4 sqrt(3) voxels
+    (the distance is 1-Lipschitz) of the fine solve; docs/hfim.md gives the measured error."""
     t0 = time.perf_counter()
     origins = np.zeros((0, 3), np.int64) if fine.coarse_inside is None else fine.coarse_inside
-    if len(origins) == 0:
-        return origins, np.zeros(0), {"tiles": 0}
+    deep_rows = np.zeros(0, np.int64) if fine.deep_rows is None else fine.deep_rows
+    if len(origins) == 0 and len(deep_rows) == 0:
+        return origins, np.zeros(0), np.zeros(0), {"tiles": 0}
     lo, hi = (np.asarray(b, dtype=np.int64) for b in domain_index_bounds)
     cell = LEVEL_CELLS[0]
     lat_lo, shape = _lattice(lo, hi, cell)
-    vals, frozen, inside = _fine_nodes(fine, lat_lo, shape)
-    idx = tuple(((origins // cell) - lat_lo).T)
+    # with the fine solve cut off inside (and outside at max_distance) few leaves are solved
+    # completely: a node is frozen where the fine solve covers its 8 centre voxels
+    vals, frozen, inside = _fine_nodes(fine, lat_lo, shape, centre=True)
+    deep_origins = fine.distance.origins[deep_rows]
+    free = np.concatenate([origins, deep_origins])
+    idx = tuple(((free // cell) - lat_lo).T)
     state = np.full(shape, EXCLUDED, np.int8)
     state[frozen] = FROZEN
-    state[idx] = FREE
-    inside[idx] = True
-    vals[idx] = np.inf
+    new = ~frozen[idx]  # a deep block's node stays frozen where its centre voxels are solved
+    todo = tuple(a[new] for a in idx)
+    state[todo] = FREE
+    inside[todo] = True
+    vals[todo] = np.inf
+    n_free = len(free)
     up, _ = node_fim(vals, state, inside, float(cell), np.inf, tol * cell, False, 1 << 62)
     if order == 2:
         up2, _ = node_fim(vals, state, inside, float(cell), np.inf, tol * cell, True,
-                          SECOND_ORDER_VISITS * max(len(origins), 1))
+                          SECOND_ORDER_VISITS * max(n_free, 1))
         up += up2
     d = vals[idx]
-    ok = np.isfinite(d)  # a left-out block with no solved path to the fine level stays unsolved
     h = float(fine.distance.voxel_size)
-    st = {"tiles": int(ok.sum()), "unreached": int((~ok).sum()), "updates": int(up),
-          "seconds": round(time.perf_counter() - t0, 4)}
-    return origins[ok], d[ok] * h, st
+    d_tiles, d_deep = d[:len(origins)], d[len(origins):]
+    limit = fine.stats.get("inside_distance", 0.0) / h
+    fill = np.maximum(d_deep, limit)  # inf where unreached: the caller leaves those voxels unsolved
+    ok = np.isfinite(d_tiles)  # a left-out block with no solved path to the fine level stays unsolved
+    st = {"tiles": int(ok.sum()), "unreached": int((~ok).sum() + (~np.isfinite(fill)).sum()),
+          "deep_blocks": int(len(deep_rows)), "updates": int(up), "seconds": round(time.perf_counter() - t0, 4)}
+    return origins[ok], d_tiles[ok] * h, fill * h, st
+
+
+def fill_deep(blocks, fine: EikonalResult, fill: np.ndarray, sign: float = 1.0) -> None:
+    """Give the unsolved deep inside voxels of ``fine.deep_rows`` (``blocks`` aligned with
+    ``fine.distance``) a distance and make them active: ``min(d(y) + |x - y|)`` over the solved
+    inside voxels y next to an unsolved one, in the block and the face layers of its six
+    neighbours (the distance is 1-Lipschitz, so each term is an upper bound; the least is
+    close where the nearest point of the solved shell lies there), and the node value ``fill``
+    (from :func:`interior_tiles`) plus the distance to the leaf centre; never less than the
+    inside limit. Written as ``sign`` times the distance; unreached ones (inf) are left."""
+    if fine.deep_rows is None or len(fine.deep_rows) == 0:
+        return
+    h = float(fine.distance.voxel_size)
+    rows, mask = fine.deep_rows, fine.deep_mask
+    dist = fine.distance
+    limit = fine.stats.get("inside_distance", 0.0) / h
+    steps = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]]) * LEAF
+    nbr = np.stack([dist.block_index(dist.origins[rows] + s) for s in steps], axis=1)
+    out = np.empty(mask.shape)
+    _shell_fill(dist.values, dist.active, fine.inside, rows, nbr, mask, fill / h, limit, 1.0 / h, out)
+    ok = np.isfinite(out) & mask
+    sub_v, sub_a = blocks.values[rows], blocks.active[rows]
+    sub_v[ok] = (sign * h * out[ok]).astype(blocks.values.dtype)
+    sub_a |= ok
+    blocks.values[rows], blocks.active[rows] = sub_v, sub_a
+
+
+@njit(cache=True)
+def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, out):
+    """Per deep block t (block ``rows[t]``, face neighbours ``nbr[t]``): ``out[t]`` at the
+    ``mask[t]`` voxels = min over the solved inside voxels of the block and of its neighbours'
+    face layers that touch a mask voxel of (value * inv_h + Euclidean distance in voxels), and
+    of ``fallback[t]`` + the distance to the leaf centre; at least ``limit``."""
+    buf = np.empty((10, 10, 10))
+    ok = np.zeros((10, 10, 10), np.bool_)
+    cand = np.empty((1000, 4))
+    for t in range(rows.shape[0]):
+        b = rows[t]
+        ok[:] = False
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    buf[i + 1, j + 1, k + 1] = vals[b, i, j, k]
+                    ok[i + 1, j + 1, k + 1] = active[b, i, j, k] and inside[b, i, j, k]
+        for u in range(8):
+            for v in range(8):
+                for f in range(6):
+                    n = nbr[t, f]
+                    if n < 0:
+                        continue
+                    if f == 0:
+                        a, bb, c, si, sj, sk = 0, u + 1, v + 1, 7, u, v
+                    elif f == 1:
+                        a, bb, c, si, sj, sk = 9, u + 1, v + 1, 0, u, v
+                    elif f == 2:
+                        a, bb, c, si, sj, sk = u + 1, 0, v + 1, u, 7, v
+                    elif f == 3:
+                        a, bb, c, si, sj, sk = u + 1, 9, v + 1, u, 0, v
+                    elif f == 4:
+                        a, bb, c, si, sj, sk = u + 1, v + 1, 0, u, v, 7
+                    else:
+                        a, bb, c, si, sj, sk = u + 1, v + 1, 9, u, v, 0
+                    buf[a, bb, c] = vals[n, si, sj, sk]
+                    ok[a, bb, c] = active[n, si, sj, sk] and inside[n, si, sj, sk]
+        m = 0
+        for i in range(10):
+            for j in range(10):
+                for k in range(10):
+                    if not ok[i, j, k]:
+                        continue
+                    touch = False
+                    for f in range(6):
+                        a = i + (f == 1) - (f == 0) - 1
+                        bb = j + (f == 3) - (f == 2) - 1
+                        c = k + (f == 5) - (f == 4) - 1
+                        if 0 <= a < 8 and 0 <= bb < 8 and 0 <= c < 8 and mask[t, a, bb, c]:
+                            touch = True
+                    if touch:
+                        cand[m, 0], cand[m, 1], cand[m, 2] = i - 1, j - 1, k - 1
+                        cand[m, 3] = buf[i, j, k] * inv_h
+                        m += 1
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if not mask[t, i, j, k]:
+                        continue
+                    ci, cj, ck = i - 3.5, j - 3.5, k - 3.5
+                    best = fallback[t] + math.sqrt(ci * ci + cj * cj + ck * ck)
+                    for q in range(m):
+                        di, dj, dk = i - cand[q, 0], j - cand[q, 1], k - cand[q, 2]
+                        v = cand[q, 3] + math.sqrt(di * di + dj * dj + dk * dk)
+                        if v < best:
+                            best = v
+                    out[t, i, j, k] = max(best, limit)
 
 
 def fill_tiles(grid, origins: np.ndarray, values: np.ndarray, cell: int = LEAF) -> None:

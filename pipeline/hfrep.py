@@ -131,9 +131,15 @@ class HFRepField:
 
 
 def density_grid(res, ramp: float):
-    """Fog volume: 1 inside deeper than ``ramp``, falling linearly to 0 at the surface."""
+    """Fog volume: 1 inside deeper than ``ramp``, falling linearly to 0 at the surface. The
+    inside voxels a limited fine solve left unsolved (``res.deep_rows``, deeper than the limit,
+    which is at least the ramp) are 1."""
     d = res.distance
     dens = np.where(res.inside & d.active, np.clip(d.values / ramp, 0.0, 1.0), 0.0).astype(np.float32)
+    if res.deep_rows is not None and len(res.deep_rows):
+        sub = dens[res.deep_rows]
+        sub[res.deep_mask] = 1.0
+        dens[res.deep_rows] = sub
     blocks = BlockGrid(d.voxel_size, 0.0, d.origins, dens, dens > 0)
     grid = vdb.FloatGrid(0.0)
     grid.name = "density"

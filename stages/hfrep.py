@@ -105,13 +105,16 @@ def run(ctx, p: Params) -> dict:
     stats = dict(res.stats)
     if p.attributes:
         stats["attributes"] = _attributes(ctx, p, res, hf, band, meta)
+    tiles = _interior(res, dom, p.order, stats)
+    if tiles is not None:  # deep inside the step is +1: hfrep = d, density = 1 (d is past the ramp)
+        from pipeline.hfim import fill_deep
+        fill_deep(hf, res, tiles[2])  # the fine blocks' inside voxels beyond the fine solve's limit
     # build the grids one at a time and drop each working copy: at 1024^3 the interior
     # distance is hundreds of millions of voxels
     hgrid = frep_to_vdb(hf, np.zeros((0, 2, 3), np.int64), "hfrep")
     hgrid.updateMetadata({**meta, "step": p.step, "slope": p.slope})
     del hf
-    tiles = _interior(res, dom, p.order, stats)
-    if tiles is not None:  # deep inside the step is +1: hfrep = d, density = 1 (d is past the ramp)
+    if tiles is not None:
         from pipeline.hfim import fill_tiles
         fill_tiles(hgrid, tiles[0], tiles[1])
     if p.density:
@@ -141,14 +144,15 @@ def _inside_distance(p: Params, maxd, band_world: float) -> float | None:
 
 
 def _interior(res, dom, order: int, stats: dict):
-    """(tile origins, distances) of the coarse interior (pipeline.hfim.interior_tiles), or None."""
+    """(tile origins, distances, values of the deep voxels of ``res.deep_rows``) of the coarse
+    interior (pipeline.hfim.interior_tiles), or None."""
     if res.coarse_inside is None:
         return None
     from pipeline.hfim import interior_tiles
 
-    origins, values, st = interior_tiles(res, (dom.index_min, dom.index_max), order)
+    origins, values, fill, st = interior_tiles(res, (dom.index_min, dom.index_max), order)
     stats["coarse_interior"] = st
-    return origins, values
+    return origins, values, fill
 
 
 def _attributes(ctx, p: Params, res, hf, band: float, meta: dict) -> dict:

@@ -1,0 +1,107 @@
+"""The fine solve's inside limit (``solve_distance(..., inside_distance=...)``, the hfrep
+stage's ``interior: coarse``) and the coarse values beyond it (``pipeline.hfim.interior_tiles``
+and ``fill_deep``): inside the limit the values are the unlimited solve's, beyond it every
+voxel (leaf tiles and the deep voxels of solved blocks) is within the stated bound of the
+exact distance, and the written grids read back with those values."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.eikonal import solve_distance
+from pipeline.grid import frep_to_vdb
+from pipeline.hfim import fill_deep, fill_tiles, interior_tiles
+from pipeline.hfrep import density_grid, hfrep_blocks
+from tests.test_eikonal import band_grid, box_of, sphere_of
+
+N = 96
+H = 2.0 / N
+SHAPES = {"sphere": sphere_of(0.7), "box": box_of(np.array([0.7, 0.5, 0.6]))}
+LIMIT = 6.0  # voxels
+BOUND = 4 * np.sqrt(3) + 1  # voxels: half a leaf's diagonal plus the node solve's error
+
+
+def _pair(name: str):
+    frep, dom = band_grid(SHAPES[name], N)
+    full = solve_distance(frep, 3 * H, dom)
+    lim = solve_distance(frep, 3 * H, dom, inside_distance=LIMIT * H)
+    return frep, dom, full, lim
+
+
+@pytest.fixture(scope="module", params=sorted(SHAPES))
+def pair(request):
+    return (request.param, *_pair(request.param))
+
+
+def test_values_inside_the_limit_are_the_unlimited_solve(pair) -> None:
+    name, frep, dom, full, lim = pair
+    st = lim.stats
+    assert st["unsolved_blocks_dropped"] > 0 and st["deep_voxels_in_fine_blocks"] > 0
+    assert st["solved_voxels"] < full.stats["solved_voxels"]
+    rows = full.distance.block_index(lim.distance.origins)
+    assert (rows >= 0).all()
+    fv, fa = full.distance.values[rows] / H, full.distance.active[rows]
+    lv, la = lim.distance.values / H, lim.distance.active
+    assert np.array_equal(lim.inside, full.inside[rows])
+    assert (fa | ~la).all()
+    # the same fixed point wherever the unlimited value is within the limit; a voxel just past
+    # it may be accepted a little lower (the second-order scheme is not monotone: without its
+    # neighbour beyond the limit the update takes other axes)
+    within = la & (fv <= LIMIT)
+    assert np.abs(lv[within] - fv[within]).max() <= 1e-4
+    assert np.abs(lv[la] - fv[la]).max() <= 0.1
+    ins = lim.inside & la
+    assert lv[ins].max() <= LIMIT
+    # nothing shallower than the limit is lost, the deep voxels are deeper than it
+    shallow = lim.inside & fa & (fv <= LIMIT - 1e-3)
+    assert la[shallow].all()
+    deep = np.zeros_like(la)
+    deep[lim.deep_rows] = lim.deep_mask
+    assert (fv[deep] > LIMIT - 1e-3).all()
+    # every inside voxel of the full solve is solved, deep, or in a coarse block
+    keys = set(map(tuple, lim.distance.origins.tolist())) | set(map(tuple, lim.coarse_inside.tolist()))
+    missing = [o for o, a in zip(full.distance.origins.tolist(), (full.inside & full.distance.active)
+                                 .reshape(len(full.inside), -1).any(axis=1), strict=True) if a and tuple(o) not in keys]
+    assert not missing
+
+
+def test_deep_voxels_and_tiles_read_back_within_the_bound(pair) -> None:
+    name, frep, dom, full, lim = pair
+    fn = SHAPES[name]
+    origins, values, fill, st = interior_tiles(lim, dom)
+    assert st["unreached"] == 0 and st["deep_blocks"] == len(lim.deep_rows) > 0 and len(origins) > 0
+    hf = hfrep_blocks(frep, lim)
+    fill_deep(hf, lim, fill)
+    grid = frep_to_vdb(hf, np.zeros((0, 2, 3), np.int64), "hfrep")
+    fill_tiles(grid, origins, values)
+    dens = density_grid(lim, 3 * H)
+    fill_tiles(dens, origins, np.ones(len(origins)))
+    lo, hi = (np.asarray(b) for b in dom)
+    shape = tuple(int(x) for x in hi - lo + 1)
+    arr, darr = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    grid.copyToArray(arr, tuple(int(x) for x in lo))
+    dens.copyToArray(darr, tuple(int(x) for x in lo))
+    act = np.zeros(shape, bool)
+    for item in grid.citerOnValues():
+        a, b = item["min"], item["max"]
+        act[a[0] - lo[0]:b[0] - lo[0] + 1, a[1] - lo[1]:b[1] - lo[1] + 1, a[2] - lo[2]:b[2] - lo[2] + 1] = True
+    ijk = np.stack(np.meshgrid(*[np.arange(lo[a], hi[a] + 1) for a in range(3)], indexing="ij"), -1)
+    exact = fn(ijk * H) / H  # positive inside
+    inside = exact > 0.5
+    assert act[inside].all()  # every voxel inside is active: nothing of the interior is missing
+    d = arr / H
+    beyond = inside & (exact > LIMIT + 1)
+    assert beyond.sum() > 10_000
+    assert np.abs(d[beyond] - exact[beyond]).max() <= BOUND
+    assert (d[beyond] >= LIMIT - 1e-3).all()
+    near = inside & (exact < LIMIT - 1)
+    assert np.abs(d[near] - exact[near]).max() <= 1.0  # the fine solve (first order, under a voxel)
+    assert np.array_equal(darr[beyond], np.ones(int(beyond.sum()), np.float32))
+    # the voxels the fill covered inside solved blocks, on their own
+    deep_ijk = []
+    for r, m in zip(lim.deep_rows, lim.deep_mask, strict=True):
+        deep_ijk.append(lim.distance.origins[r] + np.argwhere(m))
+    deep_ijk = np.concatenate(deep_ijk) - lo
+    dd, de = d[tuple(deep_ijk.T)], exact[tuple(deep_ijk.T)]
+    assert np.abs(dd - de).max() <= BOUND and dd.min() >= LIMIT - 1e-3

@@ -203,3 +203,68 @@ def split_polygons(tris: np.ndarray, quads: np.ndarray, flip: bool) -> np.ndarra
         for t in range(out.shape[0]):
             out[t, 0], out[t, 2] = out[t, 2], out[t, 0]
     return out
+
+
+@njit(cache=True)
+def raster_surface(points: np.ndarray, triangles: np.ndarray, labels: np.ndarray, palette: np.ndarray,
+                   right: np.ndarray, up: np.ndarray, eye: np.ndarray, light: np.ndarray,
+                   x0: float, y0: float, scale: float, width: int, height: int) -> np.ndarray:
+    """Orthographic z-buffer rendering of the front faces: RGBA (height, width, 4) float32, row 0
+    at the bottom, alpha 0 where no face covers a pixel centre.
+
+    A pixel at column i, row j samples the view-plane point (x0 + (i + 0.5) / scale,
+    y0 + (j + 0.5) / scale); a face covers it when the point lies in the projected triangle
+    (edge functions >= 0) and is nearer the eye than any face drawn there. Face colour:
+    ``palette[(max(label, 1) - 1) % len(palette)]`` (``palette[0]`` without labels) times
+    0.25 + 0.75 clip(n . light, 0, 1) for the unit face normal n (flat shading)."""
+    img = np.zeros((height, width, 4), np.float32)
+    zbuf = np.full((height, width), -np.inf)
+    k = palette.shape[0]
+    for t in range(triangles.shape[0]):
+        ia, ib, ic = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        ax, ay, az = np.float64(points[ia, 0]), np.float64(points[ia, 1]), np.float64(points[ia, 2])
+        bx, by, bz = np.float64(points[ib, 0]), np.float64(points[ib, 1]), np.float64(points[ib, 2])
+        cx, cy, cz = np.float64(points[ic, 0]), np.float64(points[ic, 1]), np.float64(points[ic, 2])
+        ux, uy, uz = bx - ax, by - ay, bz - az
+        vx, vy, vz = cx - ax, cy - ay, cz - az
+        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        length = np.sqrt(nx * nx + ny * ny + nz * nz)
+        if length == 0.0 or nx * eye[0] + ny * eye[1] + nz * eye[2] <= 0.0:
+            continue  # degenerate or facing away
+        lit = (nx * light[0] + ny * light[1] + nz * light[2]) / length
+        shade = 0.25 + 0.75 * min(max(lit, 0.0), 1.0)
+        row = 0 if labels.shape[0] == 0 else (max(labels[t], 1) - 1) % k
+        # screen positions (pixels) and depths of the corners
+        pa_x = ((ax * right[0] + ay * right[1] + az * right[2]) - x0) * scale
+        pa_y = ((ax * up[0] + ay * up[1] + az * up[2]) - y0) * scale
+        pb_x = ((bx * right[0] + by * right[1] + bz * right[2]) - x0) * scale
+        pb_y = ((bx * up[0] + by * up[1] + bz * up[2]) - y0) * scale
+        pc_x = ((cx * right[0] + cy * right[1] + cz * right[2]) - x0) * scale
+        pc_y = ((cx * up[0] + cy * up[1] + cz * up[2]) - y0) * scale
+        za = ax * eye[0] + ay * eye[1] + az * eye[2]
+        zb = bx * eye[0] + by * eye[1] + bz * eye[2]
+        zc = cx * eye[0] + cy * eye[1] + cz * eye[2]
+        area = (pb_x - pa_x) * (pc_y - pa_y) - (pb_y - pa_y) * (pc_x - pa_x)
+        if area == 0.0:
+            continue
+        i0 = max(int(np.ceil(min(pa_x, pb_x, pc_x) - 0.5)), 0)
+        i1 = min(int(np.floor(max(pa_x, pb_x, pc_x) - 0.5)), width - 1)
+        j0 = max(int(np.ceil(min(pa_y, pb_y, pc_y) - 0.5)), 0)
+        j1 = min(int(np.floor(max(pa_y, pb_y, pc_y) - 0.5)), height - 1)
+        for j in range(j0, j1 + 1):
+            py = j + 0.5
+            for i in range(i0, i1 + 1):
+                px = i + 0.5
+                w0 = ((pc_x - pb_x) * (py - pb_y) - (pc_y - pb_y) * (px - pb_x)) / area
+                w1 = ((pa_x - pc_x) * (py - pc_y) - (pa_y - pc_y) * (px - pc_x)) / area
+                w2 = 1.0 - w0 - w1
+                if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+                    continue
+                z = w0 * za + w1 * zb + w2 * zc
+                if z > zbuf[j, i]:
+                    zbuf[j, i] = z
+                    img[j, i, 0] = palette[row, 0] * shade
+                    img[j, i, 1] = palette[row, 1] * shade
+                    img[j, i, 2] = palette[row, 2] * shade
+                    img[j, i, 3] = 1.0
+    return img

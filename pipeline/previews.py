@@ -19,18 +19,15 @@ from typing import Any
 
 import matplotlib
 import numpy as np
-from vtkmodules.util import numpy_support as nps
-from vtkmodules.vtkFiltersCore import vtkQuadricClustering
 
 from pipeline.atomic import atomic_path
+from pipeline.meshkernels import raster_surface
 from pipeline.report import SURFACE_PNG
 from pipeline.vtkio import (
     SurfaceMesh,
     default_isovalue,
     extract_surface,
-    face_normals,
     is_vector,
-    mesh_polydata,
     pick_surface_source,
     read_dense,
     triangle_labels,
@@ -42,14 +39,14 @@ with warnings.catch_warnings():  # a system matplotlib's mpl_toolkits may shadow
     warnings.filterwarnings("ignore", message="Unable to import Axes3D")
     from matplotlib import colors as mcolors
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.collections import LineCollection, PolyCollection
+    from matplotlib.collections import LineCollection
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
 
 AXES = "xyz"
 MAX_PIXELS = 600  # longest side of a slice image before it is strided
 VIEW_AZIM, VIEW_ELEV = -60.0, 25.0  # degrees, as matplotlib's 3D default view
-MAX_FACES = 20_000
+RASTER_PIXELS = 1600  # surface picture rasterised at twice its size on screen, then downsampled
 
 
 @dataclass
@@ -230,21 +227,6 @@ def _reference(grids: Mapping[str, Any]) -> str | None:
 
 
 # --- surface rendering ------------------------------------------------------------------------
-def decimate(mesh: SurfaceMesh, max_faces: int) -> tuple[np.ndarray, np.ndarray]:
-    """(points, triangles) with at most about ``max_faces`` triangles (VTK quadric clustering)."""
-    if len(mesh.triangles) <= max_faces:
-        return mesh.points, mesh.triangles
-    clus = vtkQuadricClustering()
-    divisions = int(np.sqrt(max_faces / 2.0))
-    clus.SetNumberOfDivisions(divisions, divisions, divisions)
-    clus.SetInputData(mesh_polydata(mesh))
-    clus.Update()
-    poly = clus.GetOutput()
-    points = nps.vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float32)
-    conn = nps.vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3).astype(np.int64)
-    return points, conn
-
-
 @dataclass
 class View:
     """Orthographic camera: screen axes ``right``/``up``, ``eye`` points from the scene to the viewer."""
@@ -269,25 +251,6 @@ class View:
         return v / np.linalg.norm(v)
 
 
-def _face_colours(normals: np.ndarray, labels: np.ndarray | None, light: np.ndarray) -> np.ndarray:
-    shade = 0.25 + 0.75 * np.clip(normals @ light, 0.0, 1.0)
-    if labels is None:
-        base = np.tile(mcolors.to_rgb("#c9a66b"), (len(normals), 1))
-    else:
-        cmap, _ = _label_cmap(int(max(labels.max(), 1)))
-        base = cmap((np.maximum(np.asarray(labels, np.int64), 1) - 1) % cmap.N)[:, :3]  # one call, not one a face
-    return np.column_stack([base * shade[:, None], np.ones(len(normals))])
-
-
-def _visible_faces(points: np.ndarray, tris: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray]:
-    """Front-facing triangles sorted back to front (painter's algorithm), and their unit normals."""
-    n = face_normals(points, tris)
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-    front = np.flatnonzero(n @ view.eye > 0.0)
-    order = front[np.argsort(points[tris[front]].astype(np.float64).mean(axis=1) @ view.eye)]
-    return order, n[order]
-
-
 def _draw_frame(ax: Any, lo: np.ndarray, hi: np.ndarray, view: View) -> None:
     """The bounding box as a wireframe, its corner coordinates, and an x/y/z axis triad."""
     corners = np.array([[hi[0] if i else lo[0], hi[1] if j else lo[1], hi[2] if k else lo[2]]
@@ -309,25 +272,39 @@ def _draw_frame(ax: Any, lo: np.ndarray, hi: np.ndarray, view: View) -> None:
 
 
 def render_surface(path: str | os.PathLike, mesh: SurfaceMesh, component: Any | None = None,
-                   voxel_size: float | None = None, max_faces: int = MAX_FACES, dpi: int = 100,
+                   voxel_size: float | None = None, raster: int = RASTER_PIXELS, dpi: int = 100,
                    view: View | None = None) -> Path:
     """Shaded orthographic rendering of ``mesh`` (coloured by label when ``component`` is given).
 
-    Drawn as a 2D painter's-algorithm PolyCollection from a fixed 3D view, with the bounding box
-    and an axis triad; this keeps it independent of mpl_toolkits, which a system matplotlib can
-    shadow in a --system-site-packages environment.
+    Every triangle of the mesh is drawn by a compiled z-buffer rasteriser
+    (pipeline.meshkernels.raster_surface: flat shading, ``raster`` pixels along the longer side of
+    the picture, then shown with matplotlib's antialiased downsampling), under the bounding box and
+    an axis triad from a fixed 3D view; this keeps it independent of mpl_toolkits, which a system
+    matplotlib can shadow in a --system-site-packages environment. The labels are the mesh's own
+    (extract_surface with a component grid), else sampled from ``component``.
     """
     view = view or View.from_angles()
-    points, tris = decimate(mesh, max_faces)
+    points, tris = mesh.points, mesh.triangles
     labels = None
     if component is not None and voxel_size and len(tris):
-        labels = triangle_labels(component, points, tris, voxel_size)
-    order, normals = _visible_faces(points, tris, view)
+        labels = mesh.labels if mesh.labels is not None else triangle_labels(component, points, tris, voxel_size)
+    if labels is None:
+        palette = np.array([mcolors.to_rgb("#c9a66b")])
+    else:
+        cmap, _ = _label_cmap(int(max(labels.max(), 1)))
+        palette = np.asarray(cmap(np.arange(cmap.N)))[:, :3]
+    xy = view.project(points.astype(np.float64))
+    lo2, hi2 = xy.min(axis=0), xy.max(axis=0)
+    scale = raster / max(float((hi2 - lo2).max()), 1e-30)
+    width, height = (int(np.ceil(float(e) * scale)) + 1 for e in hi2 - lo2)
+    rgba = raster_surface(np.ascontiguousarray(points), np.ascontiguousarray(tris, dtype=np.int64),
+                          np.zeros(0, np.int32) if labels is None else np.ascontiguousarray(labels, dtype=np.int32),
+                          np.ascontiguousarray(palette, dtype=np.float64), view.right, view.up, view.eye,
+                          view.light, float(lo2[0]), float(lo2[1]), scale, width, height)
     fig = Figure(figsize=(8, 7), layout="constrained")
     ax = fig.add_subplot()
-    colours = _face_colours(normals, None if labels is None else labels[order], view.light)
-    ax.add_collection(PolyCollection(view.project(points[tris[order]]), facecolors=colours,
-                                     edgecolors=colours, linewidths=0.3))  # edges close AA seams
+    ax.imshow(rgba, origin="lower", extent=(lo2[0], lo2[0] + width / scale, lo2[1], lo2[1] + height / scale),
+              interpolation="antialiased", zorder=1)
     lo, hi = points.min(axis=0), points.max(axis=0)
     _draw_frame(ax, lo, hi, view)
     ax.autoscale_view()
@@ -338,8 +315,7 @@ def render_surface(path: str | os.PathLike, mesh: SurfaceMesh, component: Any | 
         cmap, _ = _label_cmap(max(ids, default=1))
         ax.legend(handles=[Patch(color=cmap((k - 1) % cmap.N), label=f"component {k}") for k in ids[:20]],
                   loc="upper right")
-    ax.set_title(f"surface of '{mesh.source}' at {mesh.isovalue:g}: {len(mesh.triangles)} triangles"
-                 f"{' (preview decimated)' if len(tris) < len(mesh.triangles) else ''}")
+    ax.set_title(f"surface of '{mesh.source}' at {mesh.isovalue:g}: {len(mesh.triangles)} triangles")
     path = Path(path)
     _save(fig, path, dpi)
     return path

@@ -206,3 +206,63 @@ def test_vti_holds_every_strided_value(tmp_path: Path, max_points: int) -> None:
         want = np.moveaxis(full, (0, 1, 2), (2, 1, 0)).reshape((-1, 3) if full.ndim == 4 else -1)
         got = nps.vtk_to_numpy(image.GetPointData().GetArray(name))
         np.testing.assert_array_equal(got, want)
+
+
+# --- the surface picture ------------------------------------------------------------------------
+def _square(x0: float, y0: float, size: float, z: float, facing_viewer: bool = True) -> tuple:
+    pts = np.array([[x0, y0, z], [x0 + size, y0, z], [x0 + size, y0 + size, z], [x0, y0 + size, z]], np.float32)
+    tris = np.array([[0, 1, 2], [0, 2, 3]]) if facing_viewer else np.array([[0, 2, 1], [0, 3, 2]])
+    return pts, tris
+
+
+def test_raster_surface_depth_coverage_and_shading() -> None:
+    """Three squares seen along -z: the nearer one wins wherever both cover a pixel centre, whatever
+    the drawing order; a face turned away is not drawn; colour = palette x (0.25 + 0.75 n.light)."""
+    parts = [_square(0.5, 0.5, 1.0, 0.5), _square(0.0, 0.0, 1.0, 0.0), _square(-1.0, -1.0, 4.0, 1.0, False)]
+    pts = np.concatenate([p for p, _ in parts])
+    tris = np.concatenate([t + 4 * n for n, (_, t) in enumerate(parts)])
+    labels = np.array([2, 2, 1, 1, 3, 3], np.int32)
+    palette = np.eye(3)
+    light = np.array([0.0, 0.6, 0.8])
+    img = meshkernels.raster_surface(pts, tris, labels, palette, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
+                                     np.array([0, 0, 1.0]), light, 0.0, 0.0, 10.0, 17, 16)
+    assert img.shape == (16, 17, 4)
+    c = (np.arange(17) + 0.5) / 10.0  # pixel centres (x by column, y by row)
+    r = (np.arange(16) + 0.5) / 10.0
+    in_near = ((r[:, None] >= 0.5) & (r[:, None] <= 1.5)) & ((c[None] >= 0.5) & (c[None] <= 1.5))
+    in_far = ((r[:, None] <= 1.0) & (c[None] <= 1.0)) & ~in_near
+    np.testing.assert_array_equal(img[..., 3], (in_near | in_far).astype(np.float32))
+    shade = np.float32(0.25 + 0.75 * 0.8)
+    np.testing.assert_allclose(img[in_near][:, :3], np.tile([0.0, shade, 0.0], (in_near.sum(), 1)), atol=1e-6)
+    np.testing.assert_allclose(img[in_far][:, :3], np.tile([shade, 0.0, 0.0], (in_far.sum(), 1)), atol=1e-6)
+    plain = meshkernels.raster_surface(pts, tris, np.zeros(0, np.int32), np.array([[0.5, 0.5, 0.5]]),
+                                       np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]),
+                                       light, 0.0, 0.0, 10.0, 17, 16)
+    np.testing.assert_allclose(plain[in_near | in_far][:, :3], 0.5 * shade, atol=1e-6)
+
+
+def test_raster_of_a_closed_mesh_has_no_holes() -> None:
+    """The sphere meshes of the sample scene, seen from the preview's view: every pixel centre
+    well inside a sphere's projected disc is covered, none well outside both."""
+    from pipeline.previews import View
+
+    grids = sample_grids()
+    m = vtkio.extract_surface(grids, VOXEL)
+    view = View.from_angles()
+    scale = 200.0
+    xy = view.project(m.points.astype(np.float64))
+    lo = xy.min(axis=0)
+    w, h = (int(np.ceil(e * scale)) + 1 for e in xy.max(axis=0) - lo)
+    img = meshkernels.raster_surface(m.points, m.triangles, np.zeros(0, np.int32), np.ones((1, 3)), view.right,
+                                     view.up, view.eye, view.light, float(lo[0]), float(lo[1]), scale, w, h)
+    px = lo[0] + (np.arange(w) + 0.5) / scale
+    py = lo[1] + (np.arange(h) + 0.5) / scale
+    covered = img[..., 3] > 0
+    near = np.zeros((h, w), bool)
+    far = np.ones((h, w), bool)
+    for centre, radius in (((-0.45, 0.0, 0.0), 0.4), ((0.5, 0.1, 0.0), 0.35)):
+        cx, cy = view.project(np.array(centre))
+        d = np.hypot(px[None] - cx, py[:, None] - cy)
+        near |= d < radius - VOXEL
+        far &= d > radius + VOXEL
+    assert near.sum() > 1000 and covered[near].all() and not covered[far].any()

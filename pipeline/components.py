@@ -662,8 +662,12 @@ def coarsest_same_count(comp: Components) -> tuple[Components, dict[int, int]]:
     coarsest such labelling and the map original label -> its label there (a bijection,
     since coarsening only merges and the count is unchanged)."""
     best, mapping = comp, {k: k for k in range(1, comp.count + 1)}
+    tree, rows = comp.tree, np.arange(len(comp.tree))
     for lv in range(comp.tree.depth - 1, -1, -1):
-        tree, rows = _truncate(comp.tree, lv)  # rows: every cell's own or ancestor's row there
+        # truncating the previous truncation gives the same tree as truncating the original (the
+        # same kept cells in the same order, the same sorted new ancestors) from ~1/8 of the cells
+        tree, step = _truncate(tree, lv)
+        rows = step[rows]  # every original cell's own or ancestor's row in ``tree``
         cand = label_cells(tree)
         if cand.count != comp.count:
             break

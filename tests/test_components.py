@@ -142,6 +142,15 @@ def test_algorithm2_coarsest_level_keeps_the_count():
         tree, rows = cc._truncate(found.tree, lv)
         lo, hi = found.tree.boxes()
         np.testing.assert_array_equal(rows, tree.locate(0.5 * (lo + hi)))
+    # truncating the previous truncation (as coarsest_same_count does) is truncating the original
+    chained, rows = found.tree, np.arange(len(found.tree))
+    for lv in range(found.tree.depth - 1, -1, -1):
+        chained, step = cc._truncate(chained, lv)
+        rows = step[rows]
+        direct, direct_rows = cc._truncate(found.tree, lv)
+        for f in ("level", "coords", "kind", "pos_frac"):
+            np.testing.assert_array_equal(getattr(chained, f), getattr(direct, f))
+        np.testing.assert_array_equal(rows, direct_rows)
     # the label map of two labellings: scatter when it is a function, every pair when not
     assert cc._label_map(np.array([1, 2, 2, 0]), np.array([5, 7, 7, 0])) == {0: 0, 1: 5, 2: 7}
     assert cc._label_map(np.array([1, 1]), np.array([3, 4])) == {1: 4}

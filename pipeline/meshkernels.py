@@ -268,3 +268,66 @@ def raster_surface(points: np.ndarray, triangles: np.ndarray, labels: np.ndarray
                     img[j, i, 2] = palette[row, 2] * shade
                     img[j, i, 3] = 1.0
     return img
+
+
+@njit(cache=True)
+def group_boxes(ijk: np.ndarray, order: np.ndarray, starts: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """(G, 2, 3) inclusive bounding box of the points of each group in ``groups`` (rows
+    ``order[starts[g]:starts[g + 1]]``)."""
+    out = np.empty((groups.shape[0], 2, 3), np.int64)
+    for n in range(groups.shape[0]):
+        g = groups[n]
+        first = order[starts[g]]
+        for a in range(3):
+            out[n, 0, a] = ijk[first, a]
+            out[n, 1, a] = ijk[first, a]
+        for m in range(starts[g] + 1, starts[g + 1]):
+            r = order[m]
+            for a in range(3):
+                v = ijk[r, a]
+                if v < out[n, 0, a]:
+                    out[n, 0, a] = v
+                elif v > out[n, 1, a]:
+                    out[n, 1, a] = v
+    return out
+
+
+@njit(cache=True)
+def chunk_ids(ijk: np.ndarray, log2: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ids, cmin, dims): the chunk ``ijk >> log2`` of every point as a row-major index into the
+    chunks' bounding box, which starts at chunk ``cmin`` and spans ``dims`` chunks."""
+    n = ijk.shape[0]
+    cmin = np.empty(3, np.int64)
+    cmax = np.empty(3, np.int64)
+    for a in range(3):
+        cmin[a] = ijk[0, a] >> log2
+        cmax[a] = cmin[a]
+    for r in range(1, n):
+        for a in range(3):
+            c = ijk[r, a] >> log2
+            if c < cmin[a]:
+                cmin[a] = c
+            elif c > cmax[a]:
+                cmax[a] = c
+    dims = cmax - cmin + 1
+    ids = np.empty(n, np.int64)
+    for r in range(n):
+        ids[r] = (((ijk[r, 0] >> log2) - cmin[0]) * dims[1] + ((ijk[r, 1] >> log2) - cmin[1])) * dims[2] + (
+            (ijk[r, 2] >> log2) - cmin[2])
+    return ids, cmin, dims
+
+
+@njit(cache=True)
+def unit_rows(acc: np.ndarray) -> np.ndarray:
+    """float32 rows of ``acc`` divided by their length sqrt(x*x + y*y + z*z) (float64, summed in
+    that order as ``np.linalg.norm(acc, axis=1)``); zero rows stay zero."""
+    out = np.empty(acc.shape, np.float32)
+    for r in range(acc.shape[0]):
+        x, y, z = acc[r, 0], acc[r, 1], acc[r, 2]
+        length = np.sqrt(x * x + y * y + z * z)
+        if length <= 0.0:
+            length = 1.0
+        out[r, 0] = np.float32(x / length)
+        out[r, 1] = np.float32(y / length)
+        out[r, 2] = np.float32(z / length)
+    return out

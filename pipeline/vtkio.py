@@ -48,10 +48,13 @@ from pipeline.atomic import atomic_path
 from pipeline.grid import pack_keys
 from pipeline.meshkernels import (
     centroid_voxels,
+    chunk_ids,
     face_normals_kernel,
     gather_chunk,
+    group_boxes,
     group_by_id,
     split_polygons,
+    unit_rows,
     vertex_normal_sums,
     weld_kernel,
 )
@@ -143,7 +146,8 @@ def sample_values(grid: Any, ijk: np.ndarray) -> np.ndarray:
     One ``copyToArray`` per 32^3 chunk the points touch: the cost follows the points, not the
     grid's active voxel count (a per-voxel iterator pass over 30 M voxels takes about a minute).
     The points are grouped by chunk with a counting sort over the chunks' bounding box (a
-    comparison sort of every point's key when that box is huge), and one buffer is reused.
+    comparison sort of every point's key when that box is huge); only the bounding box of a
+    chunk's points is read (a few layers where a flat face crosses it), into one reused buffer.
     """
     ijk = np.ascontiguousarray(ijk, dtype=np.int64).reshape(-1, 3)
     out = np.empty(len(ijk), np.float32)
@@ -151,28 +155,22 @@ def sample_values(grid: Any, ijk: np.ndarray) -> np.ndarray:
         return out
     if is_vector(grid):
         raise ValueError("sample_values reads scalar grids")
-    chunk = ijk >> CHUNK_LOG2
-    cmin = chunk.min(axis=0)
-    dims = chunk.max(axis=0) - cmin + 1
+    ids, _, dims = chunk_ids(ijk, CHUNK_LOG2)
     if math.prod(dims.tolist()) <= MAX_CHUNK_GROUPS:
-        rel = chunk - cmin
-        ids = (rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]
         order, starts = group_by_id(ids, int(math.prod(dims.tolist())))
-        nonempty = np.flatnonzero(starts[1:] > starts[:-1])
-        bounds = zip(starts[nonempty].tolist(), starts[nonempty + 1].tolist(), strict=True)
     else:
-        keys = pack_keys(chunk)
+        keys = pack_keys(ijk >> CHUNK_LOG2)
         order = np.argsort(keys, kind="stable")
         sk = keys[order]
-        first = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
-        bounds = zip(first.tolist(), np.r_[first[1:], len(sk)].tolist(), strict=True)
-    n = 1 << CHUNK_LOG2
-    buf = np.empty((n, n, n), np.float32)
-    for s, e in bounds:
-        rows = order[s:e]
-        ox, oy, oz = (chunk[rows[0]] << CHUNK_LOG2).tolist()
-        read_dense(grid, (ox, oy, oz), (n, n, n), out=buf)
-        gather_chunk(out, buf, ijk, rows, ox, oy, oz)
+        starts = np.append(np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]]), len(sk))
+    groups = np.flatnonzero(starts[1:] > starts[:-1])
+    boxes = group_boxes(ijk, order, starts, groups)  # read only the points' box within each chunk
+    flat = np.empty(1 << (3 * CHUNK_LOG2), np.float32)
+    for g, (lo, hi) in zip(groups.tolist(), boxes.tolist(), strict=True):
+        shape = (hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1)
+        buf = flat[: shape[0] * shape[1] * shape[2]].reshape(shape)
+        read_dense(grid, lo, shape, out=buf)
+        gather_chunk(out, buf, ijk, order[starts[g]:starts[g + 1]], lo[0], lo[1], lo[2])
     return out
 
 
@@ -359,9 +357,7 @@ def default_isovalue(name: str, grid: Any) -> float:
 
 def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals."""
-    acc = vertex_normal_sums(np.ascontiguousarray(points), np.ascontiguousarray(triangles, dtype=np.int64))
-    length = np.linalg.norm(acc, axis=1, keepdims=True)
-    return (acc / np.where(length > 0, length, 1.0)).astype(np.float32)
+    return unit_rows(vertex_normal_sums(np.ascontiguousarray(points), np.ascontiguousarray(triangles, dtype=np.int64)))
 
 
 def triangle_labels(

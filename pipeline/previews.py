@@ -179,7 +179,7 @@ def slice_figure(name: str, grid: Any, slices: list[Slice], ref: list[Slice] | N
         h, v = sl.labels
         ax.set_xlabel(f"{h} (world units)")
         ax.set_ylabel(f"{v} (world units)")
-        ax.set_title(f"{AXES[sl.axis]} = {sl.position:.4g}")
+        ax.set_title(f"{AXES[sl.axis]} = {sl.position:.4g}", y=1.01)  # a fixed y: no tick-label bbox pass
         ax.set_aspect("equal")
     if kind != "rgb":
         bar = fig.colorbar(image, cax=fig.add_axes(_SLICE_BAR), label=_bar_label(name, kind))

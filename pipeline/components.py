@@ -722,31 +722,28 @@ def _block_row(bkeys, x, y, z):
     return _bsearch(bkeys, 0, bkeys.shape[0], q)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _paint_cells(bkeys, origins, level, coords, labels, depth, imin, lab, fine):
     """Write every kept cell's label into the voxels of the blocks it covers (finest cell =
     one voxel: cell c holds voxel imin + c << (depth - level)); ``fine`` marks the voxels of
     finest-level cells. A cell costs one block lookup per 8^3 block it spans, not per voxel.
     Returns how many finest cells fell on a block (the caller checks they all did)."""
     painted = 0
-    for r in range(level.shape[0]):
-        span = 1 << (depth - level[r])
-        v0 = np.empty(3, np.int64)
-        for a in range(3):
-            v0[a] = imin[a] + (coords[r, a] << (depth - level[r]))
-        b0 = (v0 >> 3) << 3
-        b1 = ((v0 + span - 1) >> 3) << 3
-        for bx in range(b0[0], b1[0] + 1, 8):
-            for by in range(b0[1], b1[1] + 1, 8):
-                for bz in range(b0[2], b1[2] + 1, 8):
+    for r in numba.prange(level.shape[0]):  # kept cells never overlap: the writes never meet
+        sh = depth - level[r]
+        span = 1 << sh
+        x0, y0, z0 = imin[0] + (coords[r, 0] << sh), imin[1] + (coords[r, 1] << sh), imin[2] + (coords[r, 2] << sh)
+        for bx in range((x0 >> 3) << 3, (((x0 + span - 1) >> 3) << 3) + 1, 8):
+            for by in range((y0 >> 3) << 3, (((y0 + span - 1) >> 3) << 3) + 1, 8):
+                for bz in range((z0 >> 3) << 3, (((z0 + span - 1) >> 3) << 3) + 1, 8):
                     row = _block_row(bkeys, bx, by, bz)
                     if row < 0:
                         continue
                     if span == 1:
                         painted += 1
-                    i0, i1 = max(v0[0] - bx, 0), min(v0[0] + span - bx, 8)
-                    j0, j1 = max(v0[1] - by, 0), min(v0[1] + span - by, 8)
-                    k0, k1 = max(v0[2] - bz, 0), min(v0[2] + span - bz, 8)
+                    i0, i1 = max(x0 - bx, 0), min(x0 + span - bx, 8)
+                    j0, j1 = max(y0 - by, 0), min(y0 + span - by, 8)
+                    k0, k1 = max(z0 - bz, 0), min(z0 + span - bz, 8)
                     for i in range(i0, i1):
                         for j in range(j0, j1):
                             for k in range(k0, k1):
@@ -982,7 +979,7 @@ class _BoxIndex:
         g = np.floor(p / self.binsize).astype(np.int64)
         g -= g.min(axis=0)
         key = (g[:, 0] << 42) | (g[:, 1] << 21) | g[:, 2]
-        order = np.argsort(key, kind="stable")
+        order = np.argsort(key)  # the groups are what matters, not the order within one
         ks = key[order]
         gstart = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1], True]).astype(np.int64)
         return _grouped_distance(p, order, gstart, self.lo, self.hi, self.keys, self.OFFSET, self.binsize,

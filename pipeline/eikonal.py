@@ -40,7 +40,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from scipy import ndimage
 
 from pipeline.eikonal_bricks import BrickedFIM
@@ -246,15 +246,23 @@ def _block_signs(
 
 def _inside_box_blocks(inside_boxes, lattice_lo: np.ndarray, dims: np.ndarray) -> np.ndarray:
     """Lattice blocks entirely contained in one of the inside boxes (index lo, hi inclusive)."""
-    mask = np.zeros(tuple(dims), dtype=bool)
     if inside_boxes is None:
-        return mask
-    for lo, hi in np.asarray(inside_boxes, dtype=np.int64).reshape(-1, 2, 3):
-        b_lo = np.maximum(-((-lo) >> 3) - lattice_lo, 0)  # first block starting >= lo
-        b_hi = np.minimum(((hi + 1) >> 3) - 1 - lattice_lo, dims - 1)  # last block ending <= hi
-        if np.all(b_hi >= b_lo):
-            mask[b_lo[0] : b_hi[0] + 1, b_lo[1] : b_hi[1] + 1, b_lo[2] : b_hi[2] + 1] = True
-    return mask
+        return np.zeros(tuple(dims), dtype=bool)
+    boxes = np.asarray(inside_boxes, dtype=np.int64).reshape(-1, 2, 3)
+    b_lo = np.maximum(-((-boxes[:, 0]) >> 3) - lattice_lo, 0)  # first block starting >= lo
+    b_hi = np.minimum(((boxes[:, 1] + 1) >> 3) - 1 - lattice_lo, dims - 1)  # last block ending <= hi
+    ok = np.all(b_hi >= b_lo, axis=1)
+    b_lo, b_hi = b_lo[ok], b_hi[ok] + 1
+    # union of the boxes by a 3-D difference array: +-1 at the 8 corners, then prefix sums
+    acc = np.zeros(tuple(int(x) + 1 for x in dims), np.int32)
+    for cx in range(2):
+        for cy in range(2):
+            for cz in range(2):
+                c = np.stack([(b_lo, b_hi)[cx][:, 0], (b_lo, b_hi)[cy][:, 1], (b_lo, b_hi)[cz][:, 2]])
+                np.add.at(acc, tuple(c), (-1) ** (cx + cy + cz))
+    for a in range(3):
+        np.cumsum(acc, axis=a, out=acc)
+    return acc[: dims[0], : dims[1], : dims[2]] > 0
 
 
 def _near_band(band_mask: np.ndarray, max_vox: float | None) -> np.ndarray:
@@ -338,22 +346,26 @@ def solve_distance(
                                    limit_in), d, state, seeds, order)
     t2 = time.perf_counter()
 
-    solved = np.isfinite(d)
     origins = grid.origins
     deep_rows = deep_mask = None
+    rows = None
     if deep is not None:  # the inside beyond ``limit_in`` goes to the coarse solve
-        d, solved, inside, origins, state, coarse_inside, n_dropped = _drop_unsolved(
-            d, solved, inside, origins, state, fact, coarse_inside)
+        rows, coarse_inside, n_dropped = _drop_unsolved(d, inside, origins, fact, coarse_inside)
+        origins, inside, state = origins[rows], inside[rows], state[rows]
+    del grid, f, fact, sign  # free the working copies before the output is made
+    bg = float(max_distance) if max_distance is not None else h * _finite_max(d)
+    if rows is None:
+        rows = np.arange(len(d))
+    values = np.empty((len(rows), LEAF, LEAF, LEAF), np.float32)
+    solved = np.empty(values.shape, bool)
+    _finish(d, rows, h, bg, values, solved)  # one pass: at 1024^3 every full-size temporary costs gigabytes
+    del d
+    if deep is not None:
         left = inside & ~solved & (state != EXCLUDED)
         deep_rows = np.flatnonzero(left.reshape(len(left), -1).any(axis=1))
         deep_mask = left[deep_rows]
         del left
-    del grid, f, fact, sign, state  # free the working copies before the output is made
-    d *= h  # in place: at 1024^3 every full-size temporary costs gigabytes
-    bg = float(max_distance) if max_distance is not None else float(d[solved].max(initial=0.0))
-    d[~solved] = bg
-    values = d.astype(np.float32)
-    del d
+    del state
     dist = BlockGrid(h, bg, origins, values, solved)
     stats = {
         "blocks": int(len(origins)),
@@ -375,18 +387,61 @@ def solve_distance(
                          coarse_inside, deep_rows, deep_mask)
 
 
-def _drop_unsolved(d, solved, inside, origins, state, fact, coarse_inside):
-    """Remove the non-band blocks without a solved voxel (the inside limit left them to the
-    coarse solve, or they lie beyond max_distance outside); the inside ones join
-    ``coarse_inside``. Returns the arrays without them, the new coarse list and the count."""
-    none = ~solved.reshape(len(d), -1).any(axis=1) & ~fact.reshape(len(d), -1).any(axis=1)
+def _drop_unsolved(d, inside, origins, fact, coarse_inside):
+    """The non-band blocks without a solved voxel (the inside limit left them to the coarse
+    solve, or they lie beyond max_distance outside) are dropped; the inside ones join
+    ``coarse_inside``. Returns (rows kept, the new coarse list, the number dropped)."""
+    none = ~_any_finite(d) & ~fact.reshape(len(d), -1).any(axis=1)
     if not none.any():
-        return d, solved, inside, origins, state, coarse_inside, 0
+        return np.arange(len(d)), coarse_inside, 0
     gone_inside = none & inside.reshape(len(d), -1).all(axis=1)
     coarse_inside = np.concatenate([coarse_inside, origins[gone_inside]])
     coarse_inside = coarse_inside[np.argsort(pack_keys(coarse_inside), kind="stable")]
-    keep = np.flatnonzero(~none)
-    return d[keep], solved[keep], inside[keep], origins[keep], state[keep], coarse_inside, int(none.sum())
+    return np.flatnonzero(~none), coarse_inside, int(none.sum())
+
+
+@njit(cache=True, parallel=True)
+def _any_finite(d):
+    """Per block: does it hold a finite (solved) value."""
+    out = np.zeros(d.shape[0], np.bool_)
+    for b in prange(d.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if np.isfinite(d[b, i, j, k]):
+                        out[b] = True
+                        break
+                if out[b]:
+                    break
+            if out[b]:
+                break
+    return out
+
+
+@njit(cache=True)
+def _finite_max(d):
+    m = 0.0
+    for x in d.ravel():
+        if np.isfinite(x) and x > m:
+            m = x
+    return m
+
+
+@njit(cache=True, parallel=True)
+def _finish(d, rows, h, bg, values, solved):
+    """values[t] = float32(d[rows[t]] * h) where solved (finite), else ``bg``."""
+    for t in prange(rows.shape[0]):
+        b = rows[t]
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    x = d[b, i, j, k]
+                    if np.isfinite(x):
+                        values[t, i, j, k] = x * h
+                        solved[t, i, j, k] = True
+                    else:
+                        values[t, i, j, k] = bg
+                        solved[t, i, j, k] = False
 
 
 def _solve(run_pass, d, state, seeds, order: int) -> dict:
@@ -427,8 +482,10 @@ def _band_in_domain(frep: BlockGrid, lat_lo: np.ndarray, dims: np.ndarray) -> tu
     """frep blocks inside the block lattice, and the voxel signs they fix (0 = not yet known)."""
     b = (frep.origins >> 3) - lat_lo
     ok = np.all((b >= 0) & (b < dims), axis=1)
-    band = BlockGrid(frep.voxel_size, frep.background, frep.origins[ok], frep.values[ok], frep.active[ok])
-    sign = np.where(band.active, np.where(band.values > 0, 1, -1), 0).astype(np.int8)
+    band = frep if ok.all() else BlockGrid(frep.voxel_size, frep.background, frep.origins[ok], frep.values[ok],
+                                           frep.active[ok])
+    one, zero = np.int8(1), np.int8(0)
+    sign = np.where(band.active, np.where(band.values > 0, one, -one), zero)  # int8 throughout
     _flood_sign(sign, block_neighbours(band))
     return band, sign
 
@@ -450,14 +507,21 @@ def _assemble(band: BlockGrid, band_sign: np.ndarray, block_sign: np.ndarray, ke
     """
     extra = np.argwhere(keep & (block_sign != 0))
     origins = np.concatenate([band.origins, (extra + lat_lo) << 3])
-    shape = (len(extra), LEAF, LEAF, LEAF)
-    extra_sign = np.broadcast_to(block_sign[tuple(extra.T)][:, None, None, None], shape)
     order = np.argsort(pack_keys(origins), kind="stable")
-    sign = np.concatenate([band_sign, extra_sign])[order]
-    f = np.concatenate([band.values, np.zeros(shape, dtype=band.values.dtype)])[order]  # frep is float32
-    fact = np.concatenate([band.active, np.zeros(shape, dtype=bool)])[order]
+    pos = np.empty(len(origins), np.int64)  # new row of every band block, then every extra one
+    pos[order] = np.arange(len(origins))
+    nb = len(band.origins)
+    shape = (len(origins), LEAF, LEAF, LEAF)
+    # scatter the band blocks into arrays made once (no concatenated copies of the whole set)
+    f = np.zeros(shape, dtype=band.values.dtype)  # frep is float32
+    fact = np.zeros(shape, dtype=bool)
+    sign = np.empty(shape, dtype=np.int8)
+    f[pos[:nb]] = band.values
+    fact[pos[:nb]] = band.active
+    sign[pos[:nb]] = band_sign
+    sign[pos[nb:]] = block_sign[tuple(extra.T)][:, None, None, None]
     grid = BlockGrid(band.voxel_size, band.background, origins[order], f, fact)
-    return grid, np.ascontiguousarray(sign), grid.values, grid.active
+    return grid, sign, f, fact
 
 
 def _excluded_state(origins: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -504,11 +568,41 @@ def _narrow_band(result: EikonalResult, bg: float) -> BlockGrid:
     of the whole grid is never made; a narrow band only needs the blocks it touches,
     signedFloodFill does the rest)."""
     dist = result.distance
-    near = dist.active & (dist.values <= bg)
-    rows = np.flatnonzero(near.reshape(len(near), -1).any(axis=1))
-    active, v, ins = near[rows], dist.values[rows], result.inside[rows]
-    values = np.where(active, np.where(ins, -v, v), np.where(ins, -bg, bg)).astype(np.float32)
+    bg32 = np.float32(bg)
+    rows = np.flatnonzero(_near_blocks(dist.values, dist.active, bg32))
+    values = np.empty((len(rows), LEAF, LEAF, LEAF), np.float32)
+    active = np.empty(values.shape, bool)
+    _band_values(dist.values, dist.active, result.inside, rows, bg32, values, active)
     return BlockGrid(dist.voxel_size, bg, dist.origins[rows], values, active)
+
+
+@njit(cache=True, parallel=True)
+def _near_blocks(values, active, bg):
+    """Per block: does it hold an active voxel with value <= bg (float32 comparison)."""
+    out = np.zeros(values.shape[0], np.bool_)
+    for b in prange(values.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if active[b, i, j, k] and values[b, i, j, k] <= bg:
+                        out[b] = True
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _band_values(values, active, inside, rows, bg, out_v, out_a):
+    """Level-set values of the blocks ``rows``: -+d where active and d <= bg, else -+bg."""
+    for t in prange(rows.shape[0]):
+        b = rows[t]
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    v = values[b, i, j, k]
+                    a = active[b, i, j, k] and v <= bg
+                    out_a[t, i, j, k] = a
+                    if not a:
+                        v = bg
+                    out_v[t, i, j, k] = -v if inside[b, i, j, k] else v
 
 
 def surface_grid(result: EikonalResult, band: float, name: str = "surface", full: bool = False):

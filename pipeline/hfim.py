@@ -35,6 +35,7 @@ import math
 import time
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from numba import njit
 from scipy import ndimage
@@ -392,18 +393,17 @@ def fill_deep(blocks, fine: EikonalResult, fill: np.ndarray, sign: float = 1.0) 
     blocks.values[rows], blocks.active[rows] = sub_v, sub_a
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, out):
     """Per deep block t (block ``rows[t]``, face neighbours ``nbr[t]``): ``out[t]`` at the
     ``mask[t]`` voxels = min over the solved inside voxels of the block and of its neighbours'
     face layers that touch a mask voxel of (value * inv_h + Euclidean distance in voxels), and
     of ``fallback[t]`` + the distance to the leaf centre; at least ``limit``."""
-    buf = np.empty((10, 10, 10))
-    ok = np.zeros((10, 10, 10), np.bool_)
-    cand = np.empty((1000, 4))
-    for t in range(rows.shape[0]):
+    for t in numba.prange(rows.shape[0]):  # each block writes only its own row of ``out``
         b = rows[t]
-        ok[:] = False
+        buf = np.empty((10, 10, 10))
+        ok = np.zeros((10, 10, 10), np.bool_)
+        cand = np.empty((1000, 4))
         for i in range(8):
             for j in range(8):
                 for k in range(8):

@@ -25,6 +25,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+from numba import njit, prange
 from scipy.special import expit
 
 from pipeline.eikonal import EikonalResult
@@ -133,18 +134,39 @@ class HFRepField:
 def density_grid(res, ramp: float):
     """Fog volume: 1 inside deeper than ``ramp``, falling linearly to 0 at the surface. The
     inside voxels a limited fine solve left unsolved (``res.deep_rows``, deeper than the limit,
-    which is at least the ramp) are 1."""
+    which is at least the ramp) are 1. Blocks that are 1 throughout are written as active
+    tiles (what ``prune`` would make of them), the others as leaves."""
     d = res.distance
-    dens = np.where(res.inside & d.active, np.clip(d.values / ramp, 0.0, 1.0), 0.0).astype(np.float32)
+    dens = np.empty(d.values.shape, np.float32)
+    _density(d.values, d.active, res.inside, np.float32(ramp), dens)
     if res.deep_rows is not None and len(res.deep_rows):
         sub = dens[res.deep_rows]
         sub[res.deep_mask] = 1.0
         dens[res.deep_rows] = sub
-    blocks = BlockGrid(d.voxel_size, 0.0, d.origins, dens, dens > 0)
+    ones = (dens == 1.0).reshape(len(dens), -1).all(axis=1)
+    leaves = np.flatnonzero(~ones)
+    blocks = BlockGrid(d.voxel_size, 0.0, d.origins[leaves], dens[leaves], dens[leaves] > 0)
     grid = vdb.FloatGrid(0.0)
     grid.name = "density"
     grid.transform = linear_transform(d.voxel_size)
     grid.gridClass = vdb.GridClass.FOG_VOLUME
     write_blocks(grid, blocks)
+    from pipeline.hfim import fill_tiles
+
+    fill_tiles(grid, d.origins[ones], np.ones(int(ones.sum())))
     grid.prune()
     return grid
+
+
+@njit(cache=True, parallel=True)
+def _density(values, active, inside, ramp, out):
+    """clip(d / ramp, 0, 1) (float32) at the solved inside voxels, 0 elsewhere."""
+    for b in prange(values.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if inside[b, i, j, k] and active[b, i, j, k]:
+                        x = values[b, i, j, k] / ramp
+                        out[b, i, j, k] = min(max(x, np.float32(0.0)), np.float32(1.0))
+                    else:
+                        out[b, i, j, k] = 0.0

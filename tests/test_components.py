@@ -156,6 +156,42 @@ def test_algorithm2_coarsest_level_keeps_the_count():
     assert cc._label_map(np.array([1, 1]), np.array([3, 4])) == {1: 4}
 
 
+def test_find_and_locate_equal_a_reference_search():
+    """Octree.find / locate (compiled binary searches per level): the same rows as a reference
+    that looks the point's cell up at every level in a dict of the kept cells, for points
+    inside, outside and between kept cells and for queries at every level."""
+    # a box beside a sphere: large inside cells next to subdivided ones, levels 4 to 7
+    model = node({"union": [sphere((-0.45, 0.1, 0), 0.35),
+                            {"box": {"min": [0.05, -0.6, -0.5], "max": [0.8, 0.55, 0.45]}}]})
+    found = cc.detect(model, *cube(), 7)
+    tree = found.tree
+    assert np.ptp(tree.level) >= 3
+    kept = {(int(lv), *map(int, c)): r for r, (lv, c) in enumerate(zip(tree.level, tree.coords, strict=True))}
+
+    def reference(points: np.ndarray, level: int) -> np.ndarray:
+        """The kept cell holding each point at ``level`` or above, -1 when none."""
+        out = np.full(len(points), -1)
+        ijk = np.floor((points - tree.origin) / tree.finest).astype(np.int64)
+        for n, c in enumerate(ijk):
+            hits = [kept[key] for lv in range(level + 1) if (key := (lv, *(c >> (tree.depth - lv)))) in kept]
+            assert len(hits) <= 1  # kept cells never overlap
+            out[n] = hits[0] if hits else -1
+        return out
+
+    lo, hi = tree.boxes()
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-1, 1, (4000, 3))
+    want = reference(pts, tree.depth)
+    np.testing.assert_array_equal(tree.locate(pts), want)
+    assert (want < 0).sum() > 1000 and (want >= 0).sum() > 300
+    # a point anywhere in a kept cell, near its corners too, finds that cell from the finest level
+    for corner in (0.01, 0.5, 0.99):
+        np.testing.assert_array_equal(tree.locate(lo + corner * (hi - lo)), np.arange(len(tree)))
+    for level in range(tree.depth + 1):  # queries at coarser levels: the cell or a kept ancestor
+        ijk = np.floor((pts - tree.origin) / tree.cell_size(level)).astype(np.int64)
+        np.testing.assert_array_equal(tree.find(level, ijk), reference(pts, level))
+
+
 def test_solid_noise_matches_dense_label_at_the_same_tolerance():
     """Appendix A. Reference 1: the field sampled densely on the lattice of cell corners, a cell
     kept when one of its corners is positive (the finest-level rule of Algorithm 1), labelled by

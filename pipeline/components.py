@@ -368,6 +368,12 @@ def _missing_edge_neighbours(coords, vals, have, limit):
     return out
 
 
+@numba.njit(cache=True, inline="always")
+def _moved(q0, q1, q2, axis, d):
+    """(q0, q1, q2) moved by d along ``axis``."""
+    return q0 + d * (axis == 0), q1 + d * (axis == 1), q2 + d * (axis == 2)
+
+
 @numba.njit(cache=True)
 def _edge_neighbours(coords, vals, have, limit, r, out, at):
     """The missing edge neighbours of cell r, written to out[at:] when out has rows; their count."""
@@ -387,20 +393,8 @@ def _edge_neighbours(coords, vals, have, limit, r, out, at):
                 for dv in range(2):
                     if du == 0 and dv == 0:
                         continue
-                    q0, q1, q2 = coords[r, 0], coords[r, 1], coords[r, 2]
-                    dq_u, dq_v = su * du, sv * dv
-                    if u == 0:
-                        q0 += dq_u
-                    elif u == 1:
-                        q1 += dq_u
-                    else:
-                        q2 += dq_u
-                    if v == 0:
-                        q0 += dq_v
-                    elif v == 1:
-                        q1 += dq_v
-                    else:
-                        q2 += dq_v
+                    q0, q1, q2 = _moved(coords[r, 0], coords[r, 1], coords[r, 2], u, su * du)
+                    q0, q1, q2 = _moved(q0, q1, q2, v, sv * dv)
                     if min(q0, min(q1, q2)) < 0 or max(q0, max(q1, q2)) >= limit:
                         continue  # only the moved coordinates can leave the lattice
                     if _bsearch(have, 0, have.shape[0], (q0 << 42) | (q1 << 21) | q2) >= 0:

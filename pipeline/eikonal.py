@@ -274,6 +274,89 @@ def _near_band(band_mask: np.ndarray, max_vox: float | None) -> np.ndarray:
     return ndimage.maximum_filter(band_mask, size=2 * reach + 1, mode="constant", cval=False)
 
 
+SURFACE_MARGIN = 2.0  # voxels added to a limit before a block is left out: above the FIM's error (< 1 voxel)
+
+
+def _far_blocks(band: BlockGrid, band_sign, band_row, block_sign, candidates, limit_in: float,
+                limit_out: float | None) -> np.ndarray:
+    """Lattice mask of the ``candidates`` (non-band blocks) that hold no voxel within their
+    limit (``limit_in`` inside, ``limit_out`` outside, voxels) of the surface, by a lower bound:
+    the surface lies within one voxel of the interface voxels (an active voxel with f = 0 or a
+    face neighbour of the other sign, all in band blocks), so no voxel of a block is closer to
+    it than the gap between the block and the box of each band block's interface voxels,
+    minus one. A block is left out when that bound exceeds its limit by ``SURFACE_MARGIN``:
+    the FIM would accept none of its voxels, so the solve is the same without it."""
+    cand = np.argwhere(candidates)
+    out = np.zeros(candidates.shape, bool)
+    if len(cand) == 0:
+        return out
+    ilo = np.empty((len(band.origins), 3), np.int64)
+    ihi = np.empty((len(band.origins), 3), np.int64)
+    _interface_boxes(band.values, band.active, band_sign, block_neighbours(band), ilo, ihi)
+    lim_out = np.inf if limit_out is None else float(limit_out)
+    lim = np.where(block_sign[tuple(cand.T)] > 0, float(limit_in), lim_out) + SURFACE_MARGIN
+    top = float(lim[np.isfinite(lim)].max(initial=0.0))
+    reach = int(math.ceil((top + 1.0) / LEAF)) + 1  # band blocks farther away have a larger gap
+    lb = np.empty(len(cand))
+    _surface_lower_bound(cand, band_row, ilo, ihi, reach, lb)
+    far = lb > lim
+    out[tuple(cand[far].T)] = True
+    return out
+
+
+@njit(cache=True)
+def _interface_boxes(f, fact, sign, nbr, ilo, ihi):
+    """Per band block: box (local, inclusive; empty lo > hi) of its interface voxels."""
+    for b in range(sign.shape[0]):
+        for a in range(3):
+            ilo[b, a] = LEAF
+            ihi[b, a] = -1
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    s = sign[b, i, j, k]
+                    if s == 0:
+                        continue
+                    hit = fact[b, i, j, k] and f[b, i, j, k] == 0.0
+                    if not hit:
+                        for q in range(6):
+                            di, dj, dk = _dir(q)
+                            ni, nj, nk, n = _step(nbr, b, i + di, j + dj, k + dk)
+                            if n >= 0 and sign[n, ni, nj, nk] == -s:
+                                hit = True
+                                break
+                    if hit:
+                        ilo[b, 0], ihi[b, 0] = min(ilo[b, 0], i), max(ihi[b, 0], i)
+                        ilo[b, 1], ihi[b, 1] = min(ilo[b, 1], j), max(ihi[b, 1], j)
+                        ilo[b, 2], ihi[b, 2] = min(ilo[b, 2], k), max(ihi[b, 2], k)
+
+
+@njit(cache=True, parallel=True)
+def _surface_lower_bound(cand, band_row, ilo, ihi, reach, out):
+    """Per candidate lattice block: least Euclidean gap (voxels) to the interface box of a band
+    block within ``reach`` blocks, minus one (inf when there is none)."""
+    na, nb, nc = band_row.shape
+    for t in prange(cand.shape[0]):
+        p0, p1, p2 = cand[t, 0], cand[t, 1], cand[t, 2]
+        best = np.inf
+        for q0 in range(max(p0 - reach, 0), min(p0 + reach + 1, na)):
+            for q1 in range(max(p1 - reach, 0), min(p1 + reach + 1, nb)):
+                for q2 in range(max(p2 - reach, 0), min(p2 + reach + 1, nc)):
+                    r = band_row[q0, q1, q2]
+                    if r < 0 or ilo[r, 0] > ihi[r, 0]:
+                        continue
+                    g2 = 0.0
+                    for a in range(3):
+                        p = (p0, p1, p2)[a]
+                        q = (q0, q1, q2)[a]
+                        lo = LEAF * q + ilo[r, a] - (LEAF * p + LEAF - 1)
+                        hi = LEAF * p - (LEAF * q + ihi[r, a])
+                        g = max(0, lo, hi)
+                        g2 += g * g
+                    best = min(best, g2)
+        out[t] = math.sqrt(best) - 1.0
+
+
 # --- public API ----------------------------------------------------------------------------
 def solve_distance(
     frep: BlockGrid,
@@ -324,7 +407,12 @@ def solve_distance(
     deep = None if inside_distance is None else float(inside_distance) / h
     near_in = _near_band(band_mask, deep)
     keep = band_mask | ((block_sign > 0) & near_in) | ((block_sign < 0) & _near_band(band_mask, max_vox))
-    coarse_inside = None if deep is None else (np.argwhere((block_sign > 0) & ~near_in) + lat_lo) << 3
+    coarse_inside = None
+    if deep is not None:  # with the inside limit, leave out the blocks the FIM cannot reach
+        far = _far_blocks(band, band_sign, band_row, block_sign, keep & ~band_mask, deep, max_vox)
+        keep &= ~far
+        n_far = int(far.sum())
+        coarse_inside = (np.argwhere((block_sign > 0) & (~near_in | far)) + lat_lo) << 3
 
     grid, sign, f, fact = _assemble(band, band_sign, block_sign, keep, lat_lo)
     _flood_sign(sign, block_neighbours(grid))
@@ -381,6 +469,7 @@ def solve_distance(
     if coarse_inside is not None:
         stats["inside_distance"] = float(inside_distance)
         stats["coarse_inside_blocks"] = int(len(coarse_inside))
+        stats["far_blocks_left_out"] = n_far
         stats["unsolved_blocks_dropped"] = int(n_dropped)
         stats["deep_voxels_in_fine_blocks"] = int(deep_mask.sum())
     return EikonalResult(dist, inside, None if max_distance is None else float(max_distance), stats,

@@ -137,13 +137,20 @@ def _axis_term(buf, sbuf, i, j, k, di, dj, dk, me, order2):
 
 
 @njit(cache=True)
-def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf, sbuf, limit_in=np.inf):
+def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf, sbuf, fbuf, limit_in=np.inf):
     """Gauss-Seidel sweeps (alternating the 8 orderings) until block b converges.
 
     First order accepts only decreases (monotone scheme from above); second order accepts
     any change larger than ``tol``. A value above ``limit`` (outside voxels) or ``limit_in``
     (inside voxels) is never accepted. Returns (bitmask of faces whose ghost layers changed,
     voxel updates, sweeps).
+
+    ``fbuf`` (12,12,12) flags the voxels whose stencil changed: the first sweep evaluates every
+    voxel, later ones only those with an axis neighbour within ``depth`` (the stencil's reach)
+    updated since their last evaluation. The update of a voxel is a function of those
+    neighbours (its own value only enters the acceptance test, and it is unchanged since the
+    voxel's last evaluation, or set by it), so a skipped voxel would not have changed: the
+    same updates in the same order as evaluating every voxel in every sweep, at less cost.
     """
     _load_block(d, inside, nbr27, b, buf, sbuf)
     depth = 2 if order2 else 1  # ghost layers a neighbour reads
@@ -151,6 +158,7 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
     updates = 0
     sweeps = 0
     st = state[b]
+    fbuf[:] = True
     for it in range(max_sweeps):
         sweeps += 1
         changed = False
@@ -160,6 +168,9 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
                 j = jj if (it & 2) == 0 else 7 - jj
                 for kk in range(8):
                     k = kk if (it & 4) == 0 else 7 - kk
+                    if not fbuf[i + 2, j + 2, k + 2]:
+                        continue
+                    fbuf[i + 2, j + 2, k + 2] = False
                     if st[i, j, k] != FREE:
                         continue
                     me = sbuf[i + 2, j + 2, k + 2]
@@ -180,6 +191,13 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
                     buf[i + 2, j + 2, k + 2] = u
                     updates += 1
                     changed = True
+                    for r in range(1, depth + 1):  # the voxels whose stencil holds this one
+                        fbuf[i + 2 - r, j + 2, k + 2] = True
+                        fbuf[i + 2 + r, j + 2, k + 2] = True
+                        fbuf[i + 2, j + 2 - r, k + 2] = True
+                        fbuf[i + 2, j + 2 + r, k + 2] = True
+                        fbuf[i + 2, j + 2, k + 2 - r] = True
+                        fbuf[i + 2, j + 2, k + 2 + r] = True
                     faces |= (i < depth) * 1 | (i >= 8 - depth) * 2 | (j < depth) * 4
                     faces |= (j >= 8 - depth) * 8 | (k < depth) * 16 | (k >= 8 - depth) * 32
         if not changed:
@@ -260,9 +278,10 @@ def _finish_wave(work, out, nbr27, colour, lists, counts, on_list):
 
 @njit(cache=True)
 def _relax_range(d, state, inside, nbr27, work, lo, hi, limit, tol, max_sweeps, order2, buf, sbuf, out, limit_in):
+    fbuf = np.empty((12, 12, 12), dtype=np.bool_)
     for t in range(lo, hi):
         out[t, 0], out[t, 1], out[t, 2] = relax_block(d, state, inside, nbr27, work[t], limit, tol, max_sweeps,
-                                                      order2, buf, sbuf, limit_in)
+                                                      order2, buf, sbuf, fbuf, limit_in)
 
 
 @njit(cache=True)

@@ -105,3 +105,24 @@ def test_deep_voxels_and_tiles_read_back_within_the_bound(pair) -> None:
     deep_ijk = np.concatenate(deep_ijk) - lo
     dd, de = d[tuple(deep_ijk.T)], exact[tuple(deep_ijk.T)]
     assert np.abs(dd - de).max() <= BOUND and dd.min() >= LIMIT - 1e-3
+
+
+def test_blocks_left_out_before_the_solve_change_nothing(monkeypatch) -> None:
+    """The lower bound that leaves blocks out before the FIM (eikonal._far_blocks) only drops
+    blocks the FIM would not have solved: the same result as without it (margin so large that
+    nothing is left out)."""
+    import pipeline.eikonal as eik
+
+    frep, dom = band_grid(SHAPES["box"], N)
+    a = solve_distance(frep, 3 * H, dom, inside_distance=LIMIT * H)
+    monkeypatch.setattr(eik, "SURFACE_MARGIN", 1e9)
+    b = solve_distance(frep, 3 * H, dom, inside_distance=LIMIT * H)
+    assert a.stats["far_blocks_left_out"] > 100 and b.stats["far_blocks_left_out"] == 0
+    assert a.stats["unsolved_blocks_dropped"] < b.stats["unsolved_blocks_dropped"]
+    assert np.array_equal(a.distance.origins, b.distance.origins)
+    assert np.array_equal(a.distance.values, b.distance.values)
+    assert np.array_equal(a.distance.active, b.distance.active)
+    assert np.array_equal(a.coarse_inside, b.coarse_inside)
+    assert np.array_equal(a.deep_rows, b.deep_rows) and np.array_equal(a.deep_mask, b.deep_mask)
+    for k in ("block_visits", "voxel_updates", "solved_voxels"):
+        assert a.stats[k] == b.stats[k]

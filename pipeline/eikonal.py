@@ -209,9 +209,9 @@ def _domain_blocks(frep: BlockGrid, domain_index_bounds) -> tuple[np.ndarray, np
 
 def _face_sign_sums(sign: np.ndarray) -> np.ndarray:
     """(L,6) sum of voxel signs on each block face (-x,+x,-y,+y,-z,+z)."""
-    s = sign.astype(np.int64)
-    faces = [s[:, 0], s[:, 7], s[:, :, 0], s[:, :, 7], s[:, :, :, 0], s[:, :, :, 7]]
-    return np.stack([f.reshape(len(s), -1).sum(axis=1) for f in faces], axis=1)
+    n = len(sign)  # sums over the int8 faces: no int64 copy of the whole band
+    faces = [sign[:, 0], sign[:, 7], sign[:, :, 0], sign[:, :, 7], sign[:, :, :, 0], sign[:, :, :, 7]]
+    return np.stack([f.reshape(n, -1).sum(axis=1, dtype=np.int64) for f in faces], axis=1)
 
 
 def _block_signs(
@@ -418,7 +418,8 @@ def solve_distance(
     _flood_sign(sign, block_neighbours(grid))
     inside = sign > 0
     state = _excluded_state(grid.origins, lo, hi)
-    d = np.full(sign.shape, np.inf)
+    d = np.empty(sign.shape)
+    _fill_inf(d)  # first touch of the pages on every thread
     nbr27 = block_neighbours27(grid)
     n_frozen, n_quadric = init_interface(f, fact, d, state, nbr27, order == 2)
     t1 = time.perf_counter()
@@ -505,6 +506,12 @@ def _any_finite(d):
             if out[b]:
                 break
     return out
+
+
+@njit(cache=True, parallel=True)
+def _fill_inf(d):
+    for b in prange(d.shape[0]):
+        d[b] = np.inf
 
 
 @njit(cache=True)
@@ -631,8 +638,20 @@ def _excluded_state(origins: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.n
 def signed_distance_blocks(result: EikonalResult) -> BlockGrid:
     """Signed distance in level-set convention (negative inside), unclamped, solved voxels active."""
     dist = result.distance
-    values = np.where(result.inside, -dist.values, dist.values).astype(np.float32)
+    values = np.empty(dist.values.shape, np.float32)
+    _signed(dist.values, result.inside, values)
     return BlockGrid(dist.voxel_size, dist.background, dist.origins, values, dist.active)
+
+
+@njit(cache=True, parallel=True)
+def _signed(values, inside, out):
+    """out = -values inside, values outside (one parallel pass, no temporaries)."""
+    for b in prange(values.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    v = values[b, i, j, k]
+                    out[b, i, j, k] = -v if inside[b, i, j, k] else v
 
 
 def surface_blocks(result: EikonalResult, band: float, full: bool = False) -> BlockGrid:

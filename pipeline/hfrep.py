@@ -143,9 +143,10 @@ def density_grid(res, ramp: float):
         sub = dens[res.deep_rows]
         sub[res.deep_mask] = 1.0
         dens[res.deep_rows] = sub
-    ones = (dens == 1.0).reshape(len(dens), -1).all(axis=1)
+    ones = _all_one(dens)
     leaves = np.flatnonzero(~ones)
-    blocks = BlockGrid(d.voxel_size, 0.0, d.origins[leaves], dens[leaves], dens[leaves] > 0)
+    sub = dens[leaves]
+    blocks = BlockGrid(d.voxel_size, 0.0, d.origins[leaves], sub, sub > 0)
     grid = vdb.FloatGrid(0.0)
     grid.name = "density"
     grid.transform = linear_transform(d.voxel_size)
@@ -170,3 +171,16 @@ def _density(values, active, inside, ramp, out):
                         out[b, i, j, k] = min(max(x, np.float32(0.0)), np.float32(1.0))
                     else:
                         out[b, i, j, k] = 0.0
+
+
+@njit(cache=True, parallel=True)
+def _all_one(dens):
+    """Per block: are all its values 1."""
+    out = np.ones(dens.shape[0], np.bool_)
+    for b in prange(dens.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if dens[b, i, j, k] != 1.0:
+                        out[b] = False
+    return out

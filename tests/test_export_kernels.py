@@ -266,3 +266,31 @@ def test_raster_of_a_closed_mesh_has_no_holes() -> None:
         near |= d < radius - VOXEL
         far &= d > radius + VOXEL
     assert near.sum() > 1000 and covered[near].all() and not covered[far].any()
+
+
+def test_polydata_keeps_its_arrays_alive_without_copies(tmp_path: Path) -> None:
+    """mesh_polydata hands VTK the NumPy arrays without copying (numpy_to_vtk deep=False keeps a
+    reference on the VTK buffer): the polydata still holds the mesh after every NumPy array of it
+    is gone and the memory reused."""
+    import gc
+
+    m = vtkio.extract_surface(sample_grids(), VOXEL)
+    want = (m.points.copy(), m.triangles.copy(), m.normals.copy(), m.labels.copy())
+    poly = vtkio.mesh_polydata(vtkio.SurfaceMesh(m.points.copy(), m.triangles.copy(), m.normals.copy(),
+                                                 m.source, m.isovalue, m.labels.copy()))
+    del m
+    gc.collect()
+    junk = [np.full(n, -7, np.int64) for n in (10, 1000, 100_000, 1_000_000) for _ in range(8)]
+    writer = vtk.vtkXMLPolyDataWriter()
+    writer.SetFileName(str(tmp_path / "p.vtp"))
+    writer.SetInputData(poly)
+    assert writer.Write() == 1 and len(junk) == 32
+    reader = vtk.vtkXMLPolyDataReader()
+    reader.SetFileName(str(tmp_path / "p.vtp"))
+    reader.Update()
+    back = reader.GetOutput()
+    np.testing.assert_array_equal(nps.vtk_to_numpy(back.GetPoints().GetData()), want[0])
+    np.testing.assert_array_equal(nps.vtk_to_numpy(back.GetPolys().GetConnectivityArray()).reshape(-1, 3), want[1])
+    np.testing.assert_array_equal(nps.vtk_to_numpy(back.GetPolys().GetOffsetsArray()), np.arange(0, 3 * len(want[1]) + 1, 3))
+    np.testing.assert_array_equal(nps.vtk_to_numpy(back.GetPointData().GetNormals()), want[2])
+    np.testing.assert_array_equal(nps.vtk_to_numpy(back.GetCellData().GetArray("component")), want[3])

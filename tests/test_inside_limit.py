@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.eikonal import solve_distance
+from pipeline.eikonal import INSIDE_MARGIN, solve_distance
 from pipeline.grid import frep_to_vdb
 from pipeline.hfim import fill_deep, fill_tiles, interior_tiles
 from pipeline.hfrep import density_grid, hfrep_blocks
@@ -18,7 +18,8 @@ from tests.test_eikonal import band_grid, box_of, sphere_of
 N = 96
 H = 2.0 / N
 SHAPES = {"sphere": sphere_of(0.7), "box": box_of(np.array([0.7, 0.5, 0.6]))}
-LIMIT = 6.0  # voxels
+LIMIT = 6.0  # voxels: the reach (inside_distance)
+SOLVED = LIMIT + INSIDE_MARGIN  # how far inside the fine FIM accepts values
 BOUND = 4 * np.sqrt(3) + 1  # voxels: half a leaf's diagonal plus the node solve's error
 
 
@@ -45,20 +46,22 @@ def test_values_inside_the_limit_are_the_unlimited_solve(pair) -> None:
     lv, la = lim.distance.values / H, lim.distance.active
     assert np.array_equal(lim.inside, full.inside[rows])
     assert (fa | ~la).all()
-    # the same fixed point wherever the unlimited value is within the limit; a voxel just past
-    # it may be accepted a little lower (the second-order scheme is not monotone: without its
-    # neighbour beyond the limit the update takes other axes)
+    # the same fixed point wherever the unlimited value is within the reach; a voxel next to the
+    # cut-off (one voxel deeper) may end up a little off (the second-order scheme is not
+    # monotone: without its neighbours beyond the cut-off its updates come in another order)
     within = la & (fv <= LIMIT)
-    assert np.abs(lv[within] - fv[within]).max() <= 1e-4
-    assert np.abs(lv[la] - fv[la]).max() <= 0.1
+    assert within.sum() > 10_000 and np.abs(lv[within] - fv[within]).max() <= 1e-4
+    # past the reach (the INSIDE_MARGIN shell, written as fine voxels of the deep interior) a
+    # voxel next to the cut-off can move (measured 0.15 voxel): far inside the deep bound
+    assert np.abs(lv[la] - fv[la]).max() <= 0.25
     ins = lim.inside & la
-    assert lv[ins].max() <= LIMIT
+    assert SOLVED - 0.5 < lv[ins].max() <= SOLVED
     # nothing shallower than the limit is lost, the deep voxels are deeper than it
-    shallow = lim.inside & fa & (fv <= LIMIT - 1e-3)
+    shallow = lim.inside & fa & (fv <= SOLVED - 1e-3)
     assert la[shallow].all()
     deep = np.zeros_like(la)
     deep[lim.deep_rows] = lim.deep_mask
-    assert (fv[deep] > LIMIT - 1e-3).all()
+    assert (fv[deep] > SOLVED - 1e-3).all()
     # every inside voxel of the full solve is solved, deep, or in a coarse block
     keys = set(map(tuple, lim.distance.origins.tolist())) | set(map(tuple, lim.coarse_inside.tolist()))
     missing = [o for o, a in zip(full.distance.origins.tolist(), (full.inside & full.distance.active)

@@ -331,3 +331,41 @@ def unit_rows(acc: np.ndarray) -> np.ndarray:
         out[r, 1] = np.float32(y / length)
         out[r, 2] = np.float32(z / length)
     return out
+
+
+@njit(cache=True)
+def merge_kernel(bits: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge bit-identical rows of ``bits`` (points as uint32), drop triangles with a repeated
+    vertex (zero-area ones with three distinct vertices stay) and unused points. Returns (the
+    index of each kept point's first occurrence, triangles over the kept points)."""
+    rep, first = unique_rows_first(bits)
+    m = triangles.shape[0]
+    keep = np.zeros(m, np.bool_)
+    used = np.zeros(len(first), np.bool_)
+    kept = 0
+    for t in range(m):
+        a, b, c = rep[triangles[t, 0]], rep[triangles[t, 1]], rep[triangles[t, 2]]
+        if a != b and b != c and a != c:
+            keep[t] = True
+            used[a] = True
+            used[b] = True
+            used[c] = True
+            kept += 1
+    remap = np.full(len(first), -1, np.int64)
+    count = 0
+    for u in range(len(first)):
+        if used[u]:
+            remap[u] = count
+            count += 1
+    source = np.empty(count, np.int64)
+    for u in range(len(first)):
+        if used[u]:
+            source[remap[u]] = first[u]
+    out = np.empty((kept, 3), np.int64)
+    row = 0
+    for t in range(m):
+        if keep[t]:
+            for v in range(3):
+                out[row, v] = remap[rep[triangles[t, v]]]
+            row += 1
+    return source, out

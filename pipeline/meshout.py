@@ -84,10 +84,19 @@ def zero_set(grid: Any, isovalue: float = 0.0) -> TriMesh:
 
 
 def _merge(points: np.ndarray, tris: np.ndarray) -> TriMesh:
-    """Merge bit-identical vertices; drop triangles with a repeated vertex (never zero-area ones
-    with three distinct vertices: they carry edges the neighbours share)."""
+    """Merge vertices of equal coordinates; drop triangles with a repeated vertex (never
+    zero-area ones with three distinct vertices: they carry edges the neighbours share).
+    Vertices in first-occurrence order when the points are float32 values (a compiled hash
+    table), else in coordinate order (``np.unique``)."""
     if len(points) == 0:
         return TriMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+    single = points.astype(np.float32) + np.float32(0.0)  # + 0: -0.0 becomes 0.0, equal values equal bits
+    if np.array_equal(single, points):  # volumeToMesh's float32 points: a hash table, not a sort of rows
+        from pipeline.meshkernels import merge_kernel
+
+        source, t = merge_kernel(np.ascontiguousarray(single).view(np.uint32),
+                                 np.ascontiguousarray(tris, dtype=np.int64))
+        return TriMesh(np.ascontiguousarray(points[source]), t)
     uniq, inverse = np.unique(points, axis=0, return_inverse=True)
     t = inverse.reshape(-1)[tris]
     t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]

@@ -294,3 +294,33 @@ def test_polydata_keeps_its_arrays_alive_without_copies(tmp_path: Path) -> None:
     np.testing.assert_array_equal(nps.vtk_to_numpy(back.GetPolys().GetOffsetsArray()), np.arange(0, 3 * len(want[1]) + 1, 3))
     np.testing.assert_array_equal(nps.vtk_to_numpy(back.GetPointData().GetNormals()), want[2])
     np.testing.assert_array_equal(nps.vtk_to_numpy(back.GetCellData().GetArray("component")), want[3])
+
+
+def _ref_merge(points: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """pipeline.meshout._merge before session 7: np.unique over the float64 rows."""
+    uniq, inverse = np.unique(points, axis=0, return_inverse=True)
+    t = inverse.reshape(-1)[tris]
+    t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
+    used, remap = np.unique(t, return_inverse=True)
+    return uniq[used], remap.reshape(-1, 3)
+
+
+@pytest.mark.parametrize("float32_points", [True, False])
+def test_printable_mesh_merge_is_the_unique_sort_merge(float32_points: bool) -> None:
+    """meshout._merge (hash table for float32 points, np.unique otherwise) against np.unique:
+    equal coordinates merged (-0.0 with 0.0), triangles with a repeated vertex dropped, collinear
+    ones with three distinct vertices kept."""
+    from pipeline import meshout
+
+    pts, tris = _soup(9)
+    pts = pts.astype(np.float64)
+    if not float32_points:
+        pts[::7] += 1e-12  # not float32 values: the np.unique path
+    got = meshout._merge(pts, tris)
+    ref_v, ref_t = _ref_merge(pts, tris)
+    assert len(got.vertices) == len(ref_v) < len(pts) and len(got.triangles) == len(ref_t)
+    assert got.vertices.dtype == np.float64 and got.triangles.dtype == np.int64
+    for a, b in zip(_canonical(got.vertices + 0.0, got.triangles), _canonical(ref_v + 0.0, ref_t), strict=True):
+        np.testing.assert_array_equal(a, b)
+    zeros = got.vertices[got.vertices[:, 0] == 0.0]
+    assert len(np.unique(zeros, axis=0)) == len(zeros)  # no point left twice as 0.0 and -0.0

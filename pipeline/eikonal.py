@@ -227,16 +227,15 @@ def _block_signs(
     labels, n = ndimage.label(~band_mask)
     votes = np.zeros(n + 1, dtype=np.float64)
     dims = np.array(band_mask.shape)
-    p = np.argwhere(~band_mask)
-    for f, step in enumerate(_FACE_DIRS):
-        q = p + step
-        ok = np.all((q >= 0) & (q < dims), axis=1)
-        pp, qq = p[ok], q[ok]
-        hit = band_mask[qq[:, 0], qq[:, 1], qq[:, 2]]
-        pp, qq = pp[hit], qq[hit]
-        rows = band_row[qq[:, 0], qq[:, 1], qq[:, 2]]
-        opposite = f ^ 1  # the band block's face that touches the non-band block
-        np.add.at(votes, labels[pp[:, 0], pp[:, 1], pp[:, 2]], face_sums[rows, opposite])
+    q = np.argwhere(band_mask)  # walk from the band blocks (the surface), not the lattice (the volume)
+    q_rows = band_row[q[:, 0], q[:, 1], q[:, 2]]
+    for f, step in enumerate(_FACE_DIRS):  # face f of a band block touches the block at q + step
+        p = q + step
+        ok = np.all((p >= 0) & (p < dims), axis=1)
+        pp, rows = p[ok], q_rows[ok]
+        hit = ~band_mask[pp[:, 0], pp[:, 1], pp[:, 2]]
+        pp, rows = pp[hit], rows[hit]
+        np.add.at(votes, labels[pp[:, 0], pp[:, 1], pp[:, 2]], face_sums[rows, f])  # integers: exact in any order
     inside_labels = labels[inside_blocks & ~band_mask]
     np.add.at(votes, inside_labels, 1e12)
     block_sign = np.where(votes[labels] > 0, 1, -1).astype(np.int8)

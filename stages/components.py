@@ -84,7 +84,7 @@ def run(ctx, p: Params) -> dict:
     ctx.blocks["component"] = BlockGrid(blocks.voxel_size, 0.0, ctx.blocks["frep"].origins,
                                         labels.astype(np.float32), ctx.blocks["frep"].active.copy())
     if p.separate:
-        section.update(_separate(ctx, p, found, labels, kept))
+        section.update(_separate(ctx, p, found, labels, kept, depth if fine_is_voxel else None))
     ctx.manifest["components"] = section
     st = dict(found.tree.stats)
     st.update({"count": found.count, "cells": len(found.tree), "labelling_seconds": round(found.seconds, 4)})
@@ -161,8 +161,10 @@ def _label_grid(ctx, p: Params, blocks: BlockGrid, labels: np.ndarray, found: cc
     return grid
 
 
-def _separate(ctx, p: Params, found: cc.Components, labels: np.ndarray, kept: list[int]) -> dict:
-    """One .vdb per component: the field f AND g_k (section 4.3) on the voxels labelled k."""
+def _separate(ctx, p: Params, found: cc.Components, labels: np.ndarray, kept: list[int],
+              voxel_depth: int | None) -> dict:
+    """One .vdb per component: the field f AND g_k (section 4.3) on the voxels labelled k
+    (``voxel_depth``: the octree level whose cell is one voxel, None when there is none)."""
     sep, mapping = cc.coarsest_same_count(found) if p.adaptive else (found, {k: k for k in kept})
     blocks: BlockGrid = ctx.blocks["frep"]
     boxes = np.asarray(ctx.data.get("inside_boxes", np.zeros((0, 2, 3))), np.int64).reshape(-1, 2, 3)
@@ -171,7 +173,7 @@ def _separate(ctx, p: Params, found: cc.Components, labels: np.ndarray, kept: li
     files = []
     for k in kept:
         field = cc.ClusterField(sep, mapping[k], p.method)
-        piece = _piece_blocks(blocks, labels, k, field)
+        piece = _piece_blocks(blocks, labels, k, field, voxel_depth, ctx.job.domain.index_min)
         grid = frep_to_vdb(piece, boxes[box_labels == k], "frep")
         grid.updateMetadata({**ctx.grid_metadata("components", p), "component_index": int(k),
                              "component_volume": float(found.volumes[k - 1])})
@@ -184,7 +186,11 @@ def _separate(ctx, p: Params, found: cc.Components, labels: np.ndarray, kept: li
     return {"files": files, "method": p.method, "separation_depth": int(sep.tree.depth)}
 
 
-def _piece_blocks(blocks: BlockGrid, labels: np.ndarray, k: int, field: cc.ClusterField) -> BlockGrid:
+def _piece_blocks(blocks: BlockGrid, labels: np.ndarray, k: int, field: cc.ClusterField,
+                  voxel_depth: int | None = None, index_min=None) -> BlockGrid:
+    if voxel_depth is not None and field.method == "surface":  # compiled, block by block
+        rows, vals, act = field.piece_blocks(blocks, labels, k, voxel_depth, index_min)
+        return BlockGrid(blocks.voxel_size, blocks.background, blocks.origins[rows], vals, act)
     mine = blocks.active & (labels == k)
     rows = np.nonzero(mine.any(axis=(1, 2, 3)))[0]
     act = mine[rows]

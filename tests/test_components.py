@@ -509,18 +509,19 @@ def test_two_component_knot_mesh():
     assert found.count == 2
 
 
-@pytest.mark.parametrize("gap", [0.03, 0.12])
-def test_block_labels_equal_point_labels_on_every_active_voxel(gap):
-    """The stage's painted labels (cc.block_labels) are the labels point_labels gives at the voxel
-    centres, including band voxels outside every kept cell (nearest finest cell), for pieces far
-    apart and for pieces closer than the band."""
+def _two_sphere_blocks(gap: float, cut: bool = False):
+    """Two spheres ``gap`` apart (``cut``: the second one a box that the domain cuts, so the
+    pieces have coarse cells on the domain's faces) voxelised densely into 8^3 blocks (band 3
+    voxels) and their components on the voxel-aligned octree: (model, found, blocks, index_min,
+    depth)."""
     from types import SimpleNamespace
 
     from pipeline.grid import BlockGrid
     from stages.components import octree_frame
 
     h, r = 1.0 / 40, 0.3
-    model = node({"union": [sphere((-r - gap / 2, 0.03, 0), r), sphere((r + gap / 2, 0, 0.01), r)]})
+    second = {"box": {"min": [gap / 2, -0.9, -0.9], "max": [1.5, 0.9, 0.9]}} if cut else sphere((r + gap / 2, 0, 0.01), r)
+    model = node({"union": [sphere((-r - gap / 2, 0.03, 0), r), second]})
     imin, imax = np.array([-40, -20, -20]), np.array([39, 19, 19])
     dom = SimpleNamespace(voxel_size=h, dims=imax - imin + 1, index_min=imin, index_max=imax)
     origin, size, depth, region = octree_frame(dom, None, None)
@@ -535,6 +536,16 @@ def test_block_labels_equal_point_labels_on_every_active_voxel(gap):
     active = (np.abs(f) < 3 * h) & inside_dom
     keep = active.any(axis=(1, 2, 3))
     blocks = BlockGrid(h, 3 * h, o[keep], f[keep].astype(np.float32), active[keep])
+    return model, found, blocks, imin, depth
+
+
+@pytest.mark.parametrize("gap", [0.03, 0.12])
+def test_block_labels_equal_point_labels_on_every_active_voxel(gap):
+    """The stage's painted labels (cc.block_labels) are the labels point_labels gives at the voxel
+    centres, including band voxels outside every kept cell (nearest finest cell), for pieces far
+    apart and for pieces closer than the band."""
+    model, found, blocks, imin, depth = _two_sphere_blocks(gap)
+    h = blocks.voxel_size
     got = cc.block_labels(found, blocks, imin)
     b, i, j, k = np.nonzero(blocks.active)
     pts = (blocks.origins[b] + np.stack([i, j, k], axis=1)) * h
@@ -543,3 +554,29 @@ def test_block_labels_equal_point_labels_on_every_active_voxel(gap):
     assert (found.tree.locate(pts) < 0).sum() > 1000  # the nearest-cell search is exercised
     assert np.array_equal(got[b, i, j, k], want)
     assert not got[~blocks.active].any()
+
+
+@pytest.mark.parametrize("gap, cut", [(0.03, False), (0.12, False), (0.12, True)])
+def test_piece_blocks_equal_the_separation_field_at_every_voxel(gap, cut):
+    """The stage's compiled piece (ClusterField.piece_blocks: membership painted by cells, the
+    distance block by block) is r_and(f, value(voxel centre), "r0") bit for bit on every active
+    voxel of the piece, on the coarsest same-count tree (coarser than the voxels for the wider
+    gaps; boundary faces of several sizes where the domain cuts a piece)."""
+    model, found, blocks, imin, depth = _two_sphere_blocks(gap, cut)
+    labels = cc.block_labels(found, blocks, imin)
+    sep, mapping = cc.coarsest_same_count(found)
+    assert (sep.tree.depth < depth) == (gap > 0.1)
+    for k in (1, 2):
+        field = cc.ClusterField(sep, mapping[k], "surface")
+        assert (len(field.index) > 1) == (cut and k == 2)  # boxes of several size classes
+        rows, vals, act = field.piece_blocks(blocks, labels, k, depth, imin)
+        mine = blocks.active & (labels == k)
+        assert np.array_equal(rows, np.flatnonzero(mine.any(axis=(1, 2, 3))))
+        assert np.array_equal(act, mine[rows])
+        b, i, j, kk = np.nonzero(act)
+        pts = (blocks.origins[rows][b] + np.stack([i, j, kk], axis=1)) * blocks.voxel_size
+        g = field.value(pts)
+        assert (g > 0).any() and (g < 0).any() and (np.abs(g) < field.clamp).any()
+        want = rf.r_and(blocks.values[rows][b, i, j, kk].astype(np.float64), g, "r0").astype(np.float32)
+        assert np.array_equal(vals[b, i, j, kk].view(np.int32), want.view(np.int32))
+        assert np.all(vals[~act] == np.float32(blocks.background))

@@ -417,14 +417,17 @@ def solve_distance(
         n_far = int(far.sum())
         coarse_inside = (np.argwhere((block_sign > 0) & (~near_in | far)) + lat_lo) << 3
 
-    grid, sign, f, fact = _assemble(band, band_sign, block_sign, keep, lat_lo)
+    grid, sign, brow = _assemble(band, band_sign, block_sign, keep, lat_lo)
+    del band_sign, band_mask, band_row, block_sign, keep
     _flood_sign(sign, block_neighbours(grid))
     inside = sign > 0
+    del sign
     state = _excluded_state(grid.origins, lo, hi)
-    d = np.empty(sign.shape)
+    d = np.empty(inside.shape)
     _fill_inf(d)  # first touch of the pages on every thread
     nbr27 = block_neighbours27(grid)
-    n_frozen, n_quadric = init_interface(f, fact, d, state, nbr27, order == 2)
+    # frep is read in its own blocks through brow (no copy of it in the working layout)
+    n_frozen, n_quadric = init_interface(band.values, band.active, d, state, nbr27, order == 2, brow)
     t1 = time.perf_counter()
     seeds = np.nonzero((state == FROZEN).reshape(len(d), -1).any(axis=1))[0]
     limit = np.inf if max_vox is None else max_vox
@@ -442,9 +445,11 @@ def solve_distance(
     deep_rows = deep_mask = None
     rows = None
     if deep is not None:  # the inside beyond ``limit_in`` goes to the coarse solve
-        rows, coarse_inside, n_dropped = _drop_unsolved(d, inside, origins, fact, coarse_inside)
+        has_band = np.zeros(len(d), bool)  # rows of band blocks with an active voxel
+        has_band[brow >= 0] = band.active.reshape(len(band.active), -1).any(axis=1)[brow[brow >= 0]]
+        rows, coarse_inside, n_dropped = _drop_unsolved(d, inside, origins, has_band, coarse_inside)
         origins, inside, state = origins[rows], inside[rows], state[rows]
-    del grid, f, fact, sign  # free the working copies before the output is made
+    del grid, brow  # free the working copies before the output is made
     bg = float(max_distance) if max_distance is not None else h * _finite_max(d)
     if rows is None:
         rows = np.arange(len(d))
@@ -480,11 +485,12 @@ def solve_distance(
                          coarse_inside, deep_rows, deep_mask)
 
 
-def _drop_unsolved(d, inside, origins, fact, coarse_inside):
-    """The non-band blocks without a solved voxel (the inside limit left them to the coarse
-    solve, or they lie beyond max_distance outside) are dropped; the inside ones join
-    ``coarse_inside``. Returns (rows kept, the new coarse list, the number dropped)."""
-    none = ~_any_finite(d) & ~fact.reshape(len(d), -1).any(axis=1)
+def _drop_unsolved(d, inside, origins, has_band, coarse_inside):
+    """The blocks without a solved voxel and without an active frep voxel (``has_band``; the
+    inside limit left them to the coarse solve, or they lie beyond max_distance outside) are
+    dropped; the inside ones join ``coarse_inside``. Returns (rows kept, the new coarse list,
+    the number dropped)."""
+    none = ~_any_finite(d) & ~has_band
     if not none.any():
         return np.arange(len(d)), coarse_inside, 0
     gone_inside = none & inside.reshape(len(d), -1).all(axis=1)
@@ -600,27 +606,24 @@ def _lattice(origins: np.ndarray, lat_lo: np.ndarray, dims: np.ndarray) -> tuple
 
 
 def _assemble(band: BlockGrid, band_sign: np.ndarray, block_sign: np.ndarray, keep: np.ndarray, lat_lo):
-    """Working arrays over band blocks plus the kept non-band blocks (sign filled per block).
+    """Working blocks: the band blocks plus the kept non-band blocks (sign filled per block).
 
-    Returns (grid whose values are the frep values, sign int8, frep active).
-    """
+    Returns (grid of the working origins: no values, sign int8, band row of every working
+    block or -1): the frep values stay in the band's own arrays, read through that row map."""
     extra = np.argwhere(keep & (block_sign != 0))
     origins = np.concatenate([band.origins, (extra + lat_lo) << 3])
     order = np.argsort(pack_keys(origins), kind="stable")
     pos = np.empty(len(origins), np.int64)  # new row of every band block, then every extra one
     pos[order] = np.arange(len(origins))
     nb = len(band.origins)
-    shape = (len(origins), LEAF, LEAF, LEAF)
-    # scatter the band blocks into arrays made once (no concatenated copies of the whole set)
-    f = np.zeros(shape, dtype=band.values.dtype)  # frep is float32
-    fact = np.zeros(shape, dtype=bool)
-    sign = np.empty(shape, dtype=np.int8)
-    f[pos[:nb]] = band.values
-    fact[pos[:nb]] = band.active
+    sign = np.empty((len(origins), LEAF, LEAF, LEAF), dtype=np.int8)
     sign[pos[:nb]] = band_sign
     sign[pos[nb:]] = block_sign[tuple(extra.T)][:, None, None, None]
-    grid = BlockGrid(band.voxel_size, band.background, origins[order], f, fact)
-    return grid, sign, f, fact
+    brow = np.full(len(origins), -1, np.int64)
+    brow[pos[:nb]] = np.arange(nb)
+    empty = np.zeros((0, LEAF, LEAF, LEAF), np.float32)  # block_index / neighbour tables need the origins only
+    grid = BlockGrid(band.voxel_size, band.background, origins[order], empty, empty.astype(bool))
+    return grid, sign, brow
 
 
 def _excluded_state(origins: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

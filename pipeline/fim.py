@@ -340,16 +340,20 @@ def block_colour(origins: np.ndarray) -> np.ndarray:
 
 # --- initialisation next to the zero set -------------------------------------------------------
 @njit(cache=True, inline="always")
-def _value(f, fact, nbr27, b, i, j, k):
-    """(frep value, known) of a voxel given in block b's local coordinates."""
+def _value(f, fact, brow, nbr27, b, i, j, k):
+    """(frep value, known) of a voxel given in block b's local coordinates (block n of the
+    working set is row ``brow[n]`` of ``f``, none where -1)."""
     n, li, lj, lk = locate(nbr27, b, i, j, k)
-    if n < 0 or not fact[n, li, lj, lk]:
+    if n < 0:
         return 0.0, False
-    return f[n, li, lj, lk], True
+    r = brow[n]
+    if r < 0 or not fact[r, li, lj, lk]:
+        return 0.0, False
+    return f[r, li, lj, lk], True
 
 
 @njit(cache=True)
-def _quadric_fit(f, fact, nbr27, b, i, j, k, g, hess):
+def _quadric_fit(f, fact, brow, nbr27, b, i, j, k, g, hess):
     """Gradient and Hessian of frep at a voxel by central differences on its 3x3x3
     neighbourhood (the local quadratic model). False when a neighbour is not in the band, or
     when the model misses the eight corner samples (which it does not use) by more than
@@ -358,7 +362,7 @@ def _quadric_fit(f, fact, nbr27, b, i, j, k, g, hess):
     for di in range(3):
         for dj in range(3):
             for dk in range(3):
-                v, ok = _value(f, fact, nbr27, b, i + di - 1, j + dj - 1, k + dk - 1)
+                v, ok = _value(f, fact, brow, nbr27, b, i + di - 1, j + dj - 1, k + dk - 1)
                 if not ok:
                     return False
                 vals[di, dj, dk] = v
@@ -418,7 +422,7 @@ def closest_point_distance(f0, g, hess, iterations=12):
     return math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
 
 
-def init_interface(f, fact, d, state, nbr27, quadric):
+def init_interface(f, fact, d, state, nbr27, quadric, brow=None):
     """Freeze the voxels next to a sign change with sub-voxel distances (voxel units).
 
     A voxel with an axis neighbour of opposite sign gets, when ``quadric`` is set and its
@@ -429,20 +433,27 @@ def init_interface(f, fact, d, state, nbr27, quadric):
     distance is rejected when it exceeds that cap by more than a tenth of a voxel (a kink of
     the surface inside the stencil). Only blocks with band voxels are visited, in parallel
     (each writes only its own voxels and reads frep, which nobody writes: the result does not
-    depend on the threads). Returns (frozen voxels, voxels initialised by the quadric).
+    depend on the threads). ``brow``: row of ``f`` / ``fact`` of every block of ``d`` (-1: no
+    frep values there); None when they are aligned with ``d``. Returns (frozen voxels, voxels
+    initialised by the quadric).
     """
-    rows = np.flatnonzero(fact.reshape(len(fact), -1).any(axis=1))
+    if brow is None:
+        brow = np.arange(len(d))
+    has = np.zeros(len(d), bool)  # blocks with an active frep voxel
+    has[brow >= 0] = fact.reshape(len(fact), -1).any(axis=1)[brow[brow >= 0]]
+    rows = np.flatnonzero(has)
     counts = np.zeros((len(rows), 2), np.int64)
     if len(rows):
-        _init_rows(f, fact, d, state, nbr27, quadric, rows, counts)
+        _init_rows(f, fact, brow, d, state, nbr27, quadric, rows, counts)
     return int(counts[:, 0].sum()), int(counts[:, 1].sum())
 
 
 @njit(cache=True, parallel=True)
-def _init_rows(f, fact, d, state, nbr27, quadric, rows, counts):
+def _init_rows(f, fact, brow, d, state, nbr27, quadric, rows, counts):
     """:func:`init_interface` over the blocks ``rows``; (frozen, quadric) per row into ``counts``."""
     for t in numba.prange(len(rows)):
         b = rows[t]
+        fb = brow[b]
         g = np.empty(3)
         hess = np.empty((3, 3))
         count = 0
@@ -450,19 +461,19 @@ def _init_rows(f, fact, d, state, nbr27, quadric, rows, counts):
         for i in range(8):
             for j in range(8):
                 for k in range(8):
-                    if not fact[b, i, j, k] or state[b, i, j, k] == EXCLUDED:
+                    if not fact[fb, i, j, k] or state[b, i, j, k] == EXCLUDED:
                         continue
-                    fv = f[b, i, j, k]
+                    fv = f[fb, i, j, k]
                     if fv == 0.0:
                         d[b, i, j, k] = 0.0
                         state[b, i, j, k] = FROZEN
                         count += 1
                         continue
-                    cap, g2 = _crossing_cap(f, fact, nbr27, b, i, j, k, fv)
+                    cap, g2 = _crossing_cap(f, fact, brow, nbr27, b, i, j, k, fv)
                     if cap == np.inf:
                         continue
                     dist = np.inf
-                    if quadric and _quadric_fit(f, fact, nbr27, b, i, j, k, g, hess):
+                    if quadric and _quadric_fit(f, fact, brow, nbr27, b, i, j, k, g, hess):
                         dist = closest_point_distance(fv, g, hess)
                         if dist > cap + 0.1:
                             dist = np.inf
@@ -478,14 +489,14 @@ def _init_rows(f, fact, d, state, nbr27, quadric, rows, counts):
 
 
 @njit(cache=True)
-def _crossing_cap(f, fact, nbr27, b, i, j, k, fv):
+def _crossing_cap(f, fact, brow, nbr27, b, i, j, k, fv):
     """(nearest linearly interpolated axis crossing, |grad f|^2 by central differences)."""
     cap = np.inf
     g2 = 0.0
     for axis in range(3):
         di, dj, dk = int(axis == 0), int(axis == 1), int(axis == 2)
-        fl, al = _value(f, fact, nbr27, b, i - di, j - dj, k - dk)
-        fh, ah = _value(f, fact, nbr27, b, i + di, j + dj, k + dk)
+        fl, al = _value(f, fact, brow, nbr27, b, i - di, j - dj, k - dk)
+        fh, ah = _value(f, fact, brow, nbr27, b, i + di, j + dj, k + dk)
         if al and (fv > 0.0) != (fl > 0.0):
             cap = min(cap, fv / (fv - fl))
         if ah and (fv > 0.0) != (fh > 0.0):

@@ -375,7 +375,8 @@ def fill_deep(blocks, fine: EikonalResult, fill: np.ndarray, sign: float = 1.0) 
     neighbours (the distance is 1-Lipschitz, so each term is an upper bound; the least is
     close where the nearest point of the solved shell lies there), and the node value ``fill``
     (from :func:`interior_tiles`) plus the distance to the leaf centre; never less than the
-    inside limit. Written as ``sign`` times the distance; unreached ones (inf) are left."""
+    inside limit. Written as ``sign`` times the distance; unreached ones (inf) are left. Written
+    in place by one parallel pass (``blocks`` must not share arrays with ``fine.distance``)."""
     if fine.deep_rows is None or len(fine.deep_rows) == 0:
         return
     h = float(fine.distance.voxel_size)
@@ -384,21 +385,19 @@ def fill_deep(blocks, fine: EikonalResult, fill: np.ndarray, sign: float = 1.0) 
     limit = fine.stats.get("inside_distance", 0.0) / h
     steps = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]]) * LEAF
     nbr = np.stack([dist.block_index(dist.origins[rows] + s) for s in steps], axis=1)
-    out = np.empty(mask.shape)
-    _shell_fill(dist.values, dist.active, fine.inside, rows, nbr, mask, fill / h, limit, 1.0 / h, out)
-    ok = np.isfinite(out) & mask
-    sub_v, sub_a = blocks.values[rows], blocks.active[rows]
-    sub_v[ok] = (sign * h * out[ok]).astype(blocks.values.dtype)
-    sub_a |= ok
-    blocks.values[rows], blocks.active[rows] = sub_v, sub_a
+    if np.shares_memory(blocks.values, dist.values) or np.shares_memory(blocks.active, dist.active):
+        raise ValueError("fill_deep writes blocks while it reads fine.distance: give it a copy")
+    _shell_fill(dist.values, dist.active, fine.inside, rows, nbr, mask, fill / h, limit, 1.0 / h, sign * h,
+                blocks.values, blocks.active)
 
 
 @njit(cache=True, parallel=True)
-def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, out):
-    """Per deep block t (block ``rows[t]``, face neighbours ``nbr[t]``): ``out[t]`` at the
-    ``mask[t]`` voxels = min over the solved inside voxels of the block and of its neighbours'
-    face layers that touch a mask voxel of (value * inv_h + Euclidean distance in voxels), and
-    of ``fallback[t]`` + the distance to the leaf centre; at least ``limit``."""
+def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, scale, out_v, out_a):
+    """Per deep block t (block ``rows[t]``, face neighbours ``nbr[t]``), at its ``mask[t]``
+    voxels: d = min over the solved inside voxels of the block and of its neighbours' face
+    layers that touch a mask voxel of (value * inv_h + Euclidean distance in voxels), and of
+    ``fallback[t]`` + the distance to the leaf centre; at least ``limit``. Where d is finite,
+    ``out_v[rows[t]]`` = float32(scale * d) and ``out_a[rows[t]]`` = True."""
     for t in numba.prange(rows.shape[0]):  # each block writes only its own row of ``out``
         b = rows[t]
         buf = np.empty((10, 10, 10))
@@ -458,7 +457,10 @@ def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, o
                         v = cand[q, 3] + math.sqrt(di * di + dj * dj + dk * dk)
                         if v < best:
                             best = v
-                    out[t, i, j, k] = max(best, limit)
+                    best = max(best, limit)
+                    if np.isfinite(best):
+                        out_v[b, i, j, k] = np.float32(scale * best)
+                        out_a[b, i, j, k] = True
 
 
 def fill_tiles(grid, origins: np.ndarray, values: np.ndarray, cell: int = LEAF) -> None:

@@ -22,6 +22,7 @@ so ``F_HFRep`` has exactly the zero set and the sign of ``F_FRep``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -29,7 +30,7 @@ from numba import njit, prange
 from scipy.special import expit
 
 from pipeline.eikonal import EikonalResult
-from pipeline.grid import BlockGrid, linear_transform, vdb, write_blocks
+from pipeline.grid import LEAF, BlockGrid, linear_transform, vdb, write_blocks
 from pipeline.spline import TricubicSpline
 
 STEPS = ("sigmoid", "tanh", "rational")
@@ -72,16 +73,47 @@ def hfrep_blocks(
     Unsolved voxels (outside, beyond max_distance) are inactive with value -background.
     """
     dist = result.distance
-    one = np.float32(1.0)
-    values = np.where(result.inside, one, -one)  # the step is +-1 away from the frep band
-    rows = frep.block_index(dist.origins)
-    hb = np.flatnonzero(rows >= 0)
-    sub, fa = values[hb], frep.active[rows[hb]]
-    sub[fa] = step_function(frep.values[rows[hb]][fa], step, slope)
-    values[hb] = sub
-    values *= dist.values  # float32 throughout: this grid covers the whole interior
-    values[~dist.active] = -dist.background
+    rows = frep.block_index(dist.origins)  # frep row of every distance block, -1 for none
+    if step not in STEPS:
+        raise ValueError(f"step must be one of {STEPS}, not {step!r}")
+    if slope <= 0:
+        raise ValueError("slope must be > 0")
+    table = np.zeros((0, LEAF, LEAF, LEAF), np.float32)
+    if step == "tanh":  # np.tanh's values, taken from a table (chunks of frep: no float64 copy of it)
+        table = np.zeros(frep.values.shape, np.float32)
+        for a in range(0, len(table), 8192):
+            act = frep.active[a:a + 8192]
+            table[a:a + 8192][act] = step_function(frep.values[a:a + 8192][act], step, slope)
+    values = np.empty(dist.values.shape, np.float32)  # float32 throughout: this grid covers the whole interior
+    _hfrep_values(dist.values, dist.active, result.inside, rows, frep.values, frep.active, table,
+                  STEPS.index(step), float(slope), np.float32(-dist.background), values)
     return BlockGrid(dist.voxel_size, -float(dist.background), dist.origins, values, dist.active.copy())
+
+
+@njit(cache=True, parallel=True)
+def _hfrep_values(dist, active, inside, rows, f, fact, table, mode, slope, outside, out):
+    """One pass of :func:`hfrep_blocks`: float32(step) * distance at solved voxels, ``outside``
+    elsewhere; the step is +-1 from the solved side where frep has no value. ``mode``: the
+    index in STEPS; sigmoid and rational computed here with step_function's operations (the same
+    float64 values, rounded to float32 as its result was), tanh read from ``table``."""
+    for b in prange(dist.shape[0]):
+        r = rows[b]
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if not active[b, i, j, k]:
+                        out[b, i, j, k] = outside
+                        continue
+                    s = np.float32(1.0) if inside[b, i, j, k] else np.float32(-1.0)
+                    if r >= 0 and fact[r, i, j, k]:
+                        x = np.float64(f[r, i, j, k])
+                        if mode == 0:
+                            s = np.float32(2.0 * (1.0 / (1.0 + math.exp(-(2.0 * x / slope)))) - 2.0 / 2.0)
+                        elif mode == 2:
+                            s = np.float32(x / math.sqrt(slope * slope + x * x))
+                        else:
+                            s = table[r, i, j, k]
+                    out[b, i, j, k] = s * dist[b, i, j, k]
 
 
 class HFRepField:
@@ -135,23 +167,26 @@ def density_grid(res, ramp: float):
     """Fog volume: 1 inside deeper than ``ramp``, falling linearly to 0 at the surface. The
     inside voxels a limited fine solve left unsolved (``res.deep_rows``, deeper than the limit,
     which is at least the ramp) are 1. Blocks that are 1 throughout are written as active
-    tiles (what ``prune`` would make of them), the others as leaves."""
+    tiles (what ``prune`` would make of them), the others as leaves; only those leaves' values
+    are ever held (a first pass finds the blocks that are 1 throughout)."""
     d = res.distance
-    dens = np.empty(d.values.shape, np.float32)
-    _density(d.values, d.active, res.inside, np.float32(ramp), dens)
+    n = len(d.origins)
+    deep = np.full(n, -1, np.int64)  # row of each block in deep_mask, -1 for none
+    deep_mask = np.zeros((0, LEAF, LEAF, LEAF), bool) if res.deep_mask is None else res.deep_mask
     if res.deep_rows is not None and len(res.deep_rows):
-        sub = dens[res.deep_rows]
-        sub[res.deep_mask] = 1.0
-        dens[res.deep_rows] = sub
-    ones = _all_one(dens)
+        deep[res.deep_rows] = np.arange(len(res.deep_rows))
+    ramp32 = np.float32(ramp)
+    ones = _all_one(d.values, d.active, res.inside, deep, deep_mask, ramp32)
     leaves = np.flatnonzero(~ones)
-    sub = dens[leaves]
+    sub = np.empty((len(leaves), LEAF, LEAF, LEAF), np.float32)
+    _density(d.values, d.active, res.inside, deep, deep_mask, ramp32, leaves, sub)
     blocks = BlockGrid(d.voxel_size, 0.0, d.origins[leaves], sub, sub > 0)
     grid = vdb.FloatGrid(0.0)
     grid.name = "density"
     grid.transform = linear_transform(d.voxel_size)
     grid.gridClass = vdb.GridClass.FOG_VOLUME
     write_blocks(grid, blocks)
+    del blocks, sub
     from pipeline.hfim import fill_tiles
 
     fill_tiles(grid, d.origins[ones], np.ones(int(ones.sum())))
@@ -159,28 +194,38 @@ def density_grid(res, ramp: float):
     return grid
 
 
+@njit(cache=True, inline="always")
+def _density_at(values, active, inside, deep, deep_mask, ramp, b, i, j, k):
+    """The density of one voxel: 1 at a deep voxel (``deep[b]`` its row of ``deep_mask``),
+    clip(d / ramp, 0, 1) (float32) at a solved inside voxel, 0 elsewhere."""
+    r = deep[b]
+    if r >= 0 and deep_mask[r, i, j, k]:
+        return np.float32(1.0)
+    if inside[b, i, j, k] and active[b, i, j, k]:
+        x = values[b, i, j, k] / ramp
+        return min(max(x, np.float32(0.0)), np.float32(1.0))
+    return np.float32(0.0)
+
+
 @njit(cache=True, parallel=True)
-def _density(values, active, inside, ramp, out):
-    """clip(d / ramp, 0, 1) (float32) at the solved inside voxels, 0 elsewhere."""
+def _density(values, active, inside, deep, deep_mask, ramp, rows, out):
+    """out[t] = the density of block rows[t] (:func:`_density_at`)."""
+    for t in prange(rows.shape[0]):
+        b = rows[t]
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    out[t, i, j, k] = _density_at(values, active, inside, deep, deep_mask, ramp, b, i, j, k)
+
+
+@njit(cache=True, parallel=True)
+def _all_one(values, active, inside, deep, deep_mask, ramp):
+    """Per block: is its density 1 at every voxel."""
+    out = np.ones(values.shape[0], np.bool_)
     for b in prange(values.shape[0]):
         for i in range(8):
             for j in range(8):
                 for k in range(8):
-                    if inside[b, i, j, k] and active[b, i, j, k]:
-                        x = values[b, i, j, k] / ramp
-                        out[b, i, j, k] = min(max(x, np.float32(0.0)), np.float32(1.0))
-                    else:
-                        out[b, i, j, k] = 0.0
-
-
-@njit(cache=True, parallel=True)
-def _all_one(dens):
-    """Per block: are all its values 1."""
-    out = np.ones(dens.shape[0], np.bool_)
-    for b in prange(dens.shape[0]):
-        for i in range(8):
-            for j in range(8):
-                for k in range(8):
-                    if dens[b, i, j, k] != 1.0:
+                    if out[b] and _density_at(values, active, inside, deep, deep_mask, ramp, b, i, j, k) != 1.0:
                         out[b] = False
     return out

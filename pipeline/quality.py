@@ -103,15 +103,51 @@ def _load_padded(vals, act, nbr, b, buf, abuf):
                 buf[u + 1, v + 1, 9], abuf[u + 1, v + 1, 9] = vals[n, u, v, 0], act[n, u, v, 0]
 
 
+@njit(cache=True)
+def _negate_inside(inside, nbr, b, buf):
+    """Negate the values of ``buf`` (block b and its face layers, :func:`_load_padded`) that lie
+    inside (``inside`` aligned with the blocks): the signed distance from the unsigned one."""
+    for i in range(8):
+        for j in range(8):
+            for k in range(8):
+                if inside[b, i, j, k]:
+                    buf[i + 1, j + 1, k + 1] = -buf[i + 1, j + 1, k + 1]
+    for u in range(8):
+        for v in range(8):
+            n = nbr[b, 0]
+            if n >= 0 and inside[n, 7, u, v]:
+                buf[0, u + 1, v + 1] = -buf[0, u + 1, v + 1]
+            n = nbr[b, 1]
+            if n >= 0 and inside[n, 0, u, v]:
+                buf[9, u + 1, v + 1] = -buf[9, u + 1, v + 1]
+            n = nbr[b, 2]
+            if n >= 0 and inside[n, u, 7, v]:
+                buf[u + 1, 0, v + 1] = -buf[u + 1, 0, v + 1]
+            n = nbr[b, 3]
+            if n >= 0 and inside[n, u, 0, v]:
+                buf[u + 1, 9, v + 1] = -buf[u + 1, 9, v + 1]
+            n = nbr[b, 4]
+            if n >= 0 and inside[n, u, v, 7]:
+                buf[u + 1, v + 1, 0] = -buf[u + 1, v + 1, 0]
+            n = nbr[b, 5]
+            if n >= 0 and inside[n, u, v, 0]:
+                buf[u + 1, v + 1, 9] = -buf[u + 1, v + 1, 9]
+
+
+_NO_SIGN = np.zeros((0, 8, 8, 8), np.bool_)
+
+
 def _chunks(n_blocks: int) -> int:
     """Work ranges for the parallel block loops (a few per thread, none for tiny grids)."""
     return max(1, min(4 * numba.get_num_threads(), n_blocks // 256))
 
 
 @njit(cache=True, parallel=True)
-def _gradient_hist(vals, act, nbr, h, hist, chunks):
+def _gradient_hist(vals, act, nbr, h, hist, chunks, inside):
     """Histogram of |central-difference gradient| over voxels whose 6 face neighbours are
-    active (no per-voxel output: constant memory however large the grid). Returns (n, sum);
+    active (no per-voxel output: constant memory however large the grid). ``inside`` (bool,
+    aligned with the blocks, or empty): the values there are negated first (the signed
+    distance of an unsigned one, without a signed copy of the grid). Returns (n, sum);
     values beyond HIST_MAX land in the last bin. Each block is read once into a buffer with
     its face layers, so the voxel loop has no neighbour lookups. The blocks are split into
     ``chunks`` ranges run in parallel, each with its own histogram (counts are exact; the sum
@@ -130,6 +166,8 @@ def _gradient_hist(vals, act, nbr, h, hist, chunks):
         total = 0.0
         for b in range(c * nblk // chunks, (c + 1) * nblk // chunks):
             _load_padded(vals, act, nbr, b, buf, abuf)
+            if inside.shape[0]:
+                _negate_inside(inside, nbr, b, buf)
             for i in range(1, 9):
                 for j in range(1, 9):
                     for k in range(1, 9):
@@ -151,10 +189,10 @@ def _gradient_hist(vals, act, nbr, h, hist, chunks):
 
 
 @njit(cache=True, parallel=True)
-def _sign_flips(vals, act, ref, ref_act, nbr, chunks):
+def _sign_flips(vals, act, ref, ref_act, rows, nbr, chunks):
     """Edges (+x,+y,+z) between active voxels where ``vals`` changes sign and ``ref`` does not
-    (both read per block into buffers with their face layers); ``chunks`` block ranges in
-    parallel."""
+    (both read per block into buffers with their face layers; block b of ``vals`` is block
+    ``rows[b]`` of ``ref``, none where -1); ``chunks`` block ranges in parallel."""
     nblk = vals.shape[0]
     out = np.zeros((chunks, 2), np.int64)
     for c in numba.prange(chunks):
@@ -166,7 +204,7 @@ def _sign_flips(vals, act, ref, ref_act, nbr, chunks):
         edges = 0
         for b in range(c * nblk // chunks, (c + 1) * nblk // chunks):
             _load_padded(vals, act, nbr, b, vb, ab)
-            _load_padded(ref, ref_act, nbr, b, rb, rab)
+            _load_padded_rows(ref, ref_act, rows, nbr, b, rb, rab)
             for i in range(1, 9):
                 for j in range(1, 9):
                     for k in range(1, 9):
@@ -184,6 +222,40 @@ def _sign_flips(vals, act, ref, ref_act, nbr, chunks):
         out[c, 0] = extra
         out[c, 1] = edges
     return out[:, 0].sum(), out[:, 1].sum()
+
+
+@njit(cache=True)
+def _load_padded_rows(vals, act, rows, nbr, b, buf, abuf):
+    """:func:`_load_padded` of another grid's blocks: block b (and face neighbour n) is row
+    ``rows[b]`` (``rows[n]``) of ``vals``; missing rows read as inactive zeros."""
+    abuf[:] = False
+    buf[:] = 0.0
+    r = rows[b]
+    if r >= 0:
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    buf[i + 1, j + 1, k + 1] = vals[r, i, j, k]
+                    abuf[i + 1, j + 1, k + 1] = act[r, i, j, k]
+    for f in range(6):
+        n = nbr[b, f]
+        if n < 0 or rows[n] < 0:
+            continue
+        r = rows[n]
+        for u in range(8):
+            for v in range(8):
+                if f == 0:
+                    buf[0, u + 1, v + 1], abuf[0, u + 1, v + 1] = vals[r, 7, u, v], act[r, 7, u, v]
+                elif f == 1:
+                    buf[9, u + 1, v + 1], abuf[9, u + 1, v + 1] = vals[r, 0, u, v], act[r, 0, u, v]
+                elif f == 2:
+                    buf[u + 1, 0, v + 1], abuf[u + 1, 0, v + 1] = vals[r, u, 7, v], act[r, u, 7, v]
+                elif f == 3:
+                    buf[u + 1, 9, v + 1], abuf[u + 1, 9, v + 1] = vals[r, u, 0, v], act[r, u, 0, v]
+                elif f == 4:
+                    buf[u + 1, v + 1, 0], abuf[u + 1, v + 1, 0] = vals[r, u, v, 7], act[r, u, v, 7]
+                else:
+                    buf[u + 1, v + 1, 9], abuf[u + 1, v + 1, 9] = vals[r, u, v, 0], act[r, u, v, 0]
 
 
 def central_gradient(grid: BlockGrid) -> tuple[np.ndarray, np.ndarray]:
@@ -204,14 +276,19 @@ def gradient_stats(grid: BlockGrid, mask: Callable[[np.ndarray], np.ndarray] | N
     (percentiles to 1e-4), so any grid size costs constant memory.
     """
     if mask is None:
-        hist = np.zeros(HIST_BINS, np.int64)
-        n, total = _gradient_hist(grid.values, grid.active, block_neighbours(grid), float(grid.voxel_size), hist,
-                                  _chunks(len(grid.values)))
-        return _hist_stats(hist, n, total)
+        return _hist_gradient(grid)
     ijk, g = central_gradient(grid)
     if len(ijk):
         g = g[np.asarray(mask(ijk * grid.voxel_size), dtype=bool)]
     return _norm_stats(np.linalg.norm(g, axis=1))
+
+
+def _hist_gradient(grid: BlockGrid, inside: np.ndarray = _NO_SIGN) -> dict:
+    """:func:`gradient_stats` without a mask; ``inside``: negate the values there first."""
+    hist = np.zeros(HIST_BINS, np.int64)
+    n, total = _gradient_hist(grid.values, grid.active, block_neighbours(grid), float(grid.voxel_size), hist,
+                              _chunks(len(grid.values)), inside)
+    return _hist_stats(hist, n, total)
 
 
 def _hist_stats(hist: np.ndarray, n: int, total: float) -> dict:
@@ -269,11 +346,13 @@ def distance_deviation(
 
 
 def deviation_on_blocks(grid: BlockGrid, reference: BlockGrid, band: float, sign: float = 1.0,
-                        near: np.ndarray | None = None) -> dict:
+                        near: np.ndarray | None = None, ref_inside: np.ndarray = _NO_SIGN) -> dict:
     """Like :func:`distance_deviation`, with the reference given as blocks (``sign`` * its
     values is the distance in ``grid``'s convention); block-aligned, no per-voxel lookup.
     ``near``: origins of the blocks that can hold voxels within ``band`` of the surface (the
-    voxelise band): only those are compared, so the cost follows the surface, not the volume."""
+    voxelise band): only those are compared, so the cost follows the surface, not the volume.
+    ``ref_inside`` (bool, aligned with ``reference``'s blocks, or empty): the reference's values
+    are negated there first (an unsigned distance compared as the signed one, without a copy)."""
     g_rows = np.arange(len(grid.origins)) if near is None else grid.block_index(near)
     g_rows = g_rows[g_rows >= 0]
     rows = reference.block_index(grid.origins[g_rows])
@@ -282,7 +361,7 @@ def deviation_on_blocks(grid: BlockGrid, reference: BlockGrid, band: float, sign
     chunks = _chunks(len(g_rows))
     acc = np.zeros((chunks, 4))  # count, max, sum, sum of squares per block range
     _deviation(grid.values, grid.active, reference.values, reference.active, g_rows, rows, float(sign),
-               float(band), acc)
+               float(band), acc, ref_inside)
     n = int(acc[:, 0].sum())
     if n == 0:
         return {"voxels": 0}
@@ -293,9 +372,11 @@ def deviation_on_blocks(grid: BlockGrid, reference: BlockGrid, band: float, sign
 
 
 @njit(cache=True, parallel=True)
-def _deviation(vals, act, ref, ref_act, g_rows, rows, sign, band, acc):
+def _deviation(vals, act, ref, ref_act, g_rows, rows, sign, band, acc, ref_inside):
     """|vals - sign * ref| over the voxels active in both where |sign * ref| < band, block pairs
-    (g_rows[t], rows[t]) split into ``len(acc)`` ranges: (count, max, sum, sum of squares)."""
+    (g_rows[t], rows[t]) split into ``len(acc)`` ranges: (count, max, sum, sum of squares).
+    ``ref_inside`` (or empty): ref is negated there."""
+    signed = ref_inside.shape[0] > 0
     chunks = acc.shape[0]
     m = g_rows.shape[0]
     for c in numba.prange(chunks):
@@ -310,7 +391,10 @@ def _deviation(vals, act, ref, ref_act, g_rows, rows, sign, band, acc):
                     for k in range(8):
                         if not (act[gb, i, j, k] and ref_act[rb, i, j, k]):
                             continue
-                        r = sign * np.float64(ref[rb, i, j, k])
+                        r = np.float64(ref[rb, i, j, k])
+                        if signed and ref_inside[rb, i, j, k]:
+                            r = -r
+                        r = sign * r
                         if not abs(r) < band:
                             continue
                         e = abs(np.float64(vals[gb, i, j, k]) - r)
@@ -337,28 +421,24 @@ def extra_zero_crossings(field: BlockGrid, reference: BlockGrid) -> dict:
     Both grids are compared on ``field``'s blocks; ``reference`` (e.g. frep, or the level
     set negated) contributes where it has active voxels. Signs: > 0 vs <= 0.
     """
-    rows = reference.block_index(field.origins)
-    has = rows >= 0
-    ref = np.zeros(field.values.shape, dtype=reference.values.dtype)
-    ref_act = np.zeros(field.values.shape, dtype=bool)
-    ref[has] = reference.values[rows[has]]
-    ref_act[has] = reference.active[rows[has]]
-    extra, edges = _sign_flips(field.values, field.active, ref, ref_act, block_neighbours(field),
-                               _chunks(len(field.values)))
+    rows = reference.block_index(field.origins)  # read through the rows: no aligned copy of the reference
+    extra, edges = _sign_flips(field.values, field.active, reference.values, reference.active, rows,
+                               block_neighbours(field), _chunks(len(field.values)))
     return {"extra_zero_crossings": int(extra), "edges_compared": int(edges)}
 
 
 def field_report(frep: BlockGrid, res, hf: BlockGrid) -> dict:
     """approximate-distance-fields 1.2 / 2.3: |grad| statistics, deviation from the distance
     near the boundary, extra zero crossings - for frep, surface and hfrep."""
-    from pipeline.eikonal import signed_distance_blocks
-
-    sd = signed_distance_blocks(res)  # negative inside; -sd is the distance with FRep's sign
+    # the signed distance (negative inside; minus it is the distance with FRep's sign) is read
+    # from the unsigned one and ``res.inside`` by the kernels: no signed copy of the grid
+    dist, inside = res.distance, res.inside
     band = 3 * frep.voxel_size
     return {
-        "frep": {"gradient": gradient_stats(frep), "deviation": deviation_on_blocks(frep, sd, band, -1.0)},
-        "surface": {"gradient": gradient_stats(sd)},
+        "frep": {"gradient": gradient_stats(frep),
+                 "deviation": deviation_on_blocks(frep, dist, band, -1.0, ref_inside=inside)},
+        "surface": {"gradient": _hist_gradient(dist, inside)},
         "hfrep": {"gradient": gradient_stats(hf),
-                  "deviation": deviation_on_blocks(hf, sd, band, -1.0, near=frep.origins),
+                  "deviation": deviation_on_blocks(hf, dist, band, -1.0, near=frep.origins, ref_inside=inside),
                   **extra_zero_crossings(hf, frep)},
     }

@@ -732,11 +732,82 @@ def _has_interior(tree: Tree, cons: list[tuple[int, float]], tol: float) -> bool
     if abs(t - tol) > 100.0 * tol:  # decided (NaN compares False): the compiled simplex, ~15 us
         return bool(t > tol)
     a_ub = np.concatenate([a, np.ones((len(cons), 1))], axis=1)  # -sg(n.x+c) + t <= 0
-    cost = np.zeros(d + 1)
+    t = _highs_margin(a_ub, b_ub)
+    return bool(t is not None and t > tol)
+
+
+def _highs_margin(a_ub: np.ndarray, b_ub: np.ndarray) -> float | None:
+    """max t s.t. a_ub @ (x, t) <= b_ub, t <= 1 (x free) by HiGHS, as ``linprog(method="highs")``
+    solves it: None unless optimal. scipy's linprog spends ~1 ms of Python per call on these tiny
+    problems (input checks, option validation, the result object); the same HiGHS model with the
+    same options is built here directly (~0.2 ms), and its optimum is the one linprog returns,
+    to the bit (checked in tests/test_bsp.py). linprog is the fallback when scipy's internal
+    HiGHS module is not there."""
+    hs = _highs_core()
+    d1 = a_ub.shape[1]
+    if hs is None:
+        cost = np.zeros(d1)
+        cost[-1] = -1.0
+        r = linprog(cost, A_ub=a_ub, b_ub=b_ub, bounds=[(None, None)] * (d1 - 1) + [(None, 1.0)], method="highs")
+        return -float(r.fun) if r.status == 0 else None
+    h, opts = hs
+    m = a_ub.shape[0]
+    nz = a_ub.T != 0  # CSC without explicit zeros (as linprog's csc_array of the dense matrix)
+    lp = h.HighsLp()
+    lp.num_col_ = d1
+    lp.num_row_ = m
+    lp.a_matrix_.num_col_ = d1
+    lp.a_matrix_.num_row_ = m
+    lp.a_matrix_.format_ = h.MatrixFormat.kColwise
+    cost = np.zeros(d1)
     cost[-1] = -1.0
-    bounds = [(None, None)] * d + [(None, 1.0)]
-    r = linprog(cost, A_ub=a_ub, b_ub=b_ub, bounds=bounds, method="highs")
-    return bool(r.status == 0 and -r.fun > tol)
+    lp.col_cost_ = cost
+    lp.col_lower_ = np.full(d1, -h.kHighsInf)
+    upper = np.full(d1, h.kHighsInf)
+    upper[-1] = 1.0
+    lp.col_upper_ = upper
+    lp.row_lower_ = np.full(m, -h.kHighsInf)
+    lp.row_upper_ = np.array(b_ub, dtype=np.float64)
+    lp.a_matrix_.start_ = np.concatenate([[0], np.cumsum(nz.sum(axis=1))]).astype(np.int32)
+    lp.a_matrix_.index_ = np.nonzero(nz)[1].astype(np.int32)
+    lp.a_matrix_.value_ = a_ub.T[nz]
+    solver = h._Highs()
+    solver.passOptions(opts)
+    solver.passModel(lp)
+    solver.run()
+    if solver.getModelStatus() != h.HighsModelStatus.kOptimal:
+        return None
+    # linprog's own check of the solution (scipy _check_result: violations beyond 10 sqrt(1e-9))
+    sol = solver.getSolution()
+    x = np.asarray(sol.col_value)
+    slack = lp.row_upper_ - np.asarray(sol.row_value)
+    fun = float(solver.getInfo().objective_function_value)
+    chk = 10.0 * np.sqrt(1e-9)
+    if np.isnan(fun) or np.isnan(x).any() or np.isnan(slack).any() or (slack < -chk).any() or x[-1] > 1.0 + chk:
+        return None
+    return -fun
+
+
+_HIGHS: list = []
+
+
+def _highs_core():
+    """(scipy's HiGHS module, the options linprog(method="highs") passes), or None."""
+    if not _HIGHS:
+        try:
+            from scipy.optimize._highspy import _core as h
+            from scipy.optimize._highspy._core.simplex_constants import SimplexStrategy
+
+            opts = h.HighsOptions()
+            opts.presolve = "on"
+            opts.highs_debug_level = h.HighsDebugLevel.kHighsDebugLevelNone
+            opts.log_to_console = False
+            opts.output_flag = False
+            opts.simplex_strategy = SimplexStrategy.kSimplexStrategyDual
+            _HIGHS.append((h, opts))
+        except (ImportError, AttributeError):
+            _HIGHS.append(None)
+    return _HIGHS[0]
 
 
 def _contained(tree, inner, outer_out, side, tol, budget) -> bool:

@@ -376,14 +376,10 @@ def _highs_margin(a: np.ndarray, b: np.ndarray) -> float:
     return -r.fun
 
 
-def test_compiled_margin_agrees_with_highs() -> None:
-    """pipeline.small_lp.max_margin (the special cases' interior LPs, section 3.2): the optimum
-    equals HiGHS's to 1e-7 on random halfspace sets of 4-40 planes, on boxes touching a
-    halfspace (margin 0) and on repeated planes (degenerate); so its decision (margin > tol) is
-    HiGHS's wherever the margin is not within HiGHS's own tolerance of the threshold."""
-    from pipeline.small_lp import max_margin
-
-    rng = np.random.default_rng(7)
+def _margin_cases(rng) -> list:
+    """Halfspace sets a x <= b of the interior LPs: random ones, unit boxes with a halfspace
+    touching or cutting a face (margin 0 or not), repeated planes (degenerate), axis normals
+    (sparse rows)."""
     cases = []
     for _ in range(300):
         m = int(rng.integers(4, 41))
@@ -396,7 +392,28 @@ def test_compiled_margin_agrees_with_highs() -> None:
         cut = rng.choice([0.0, 0.3, -0.2])
         cases.append((np.r_[box, -box[k:k + 1]], np.r_[np.full(6, 0.5), [-0.5 + cut]]))
         cases.append((np.r_[box, box, box[k:k + 1]], np.r_[np.full(12, 0.5), [0.5]]))  # repeated planes
-    for a, b in cases:
+    return cases
+
+
+def test_direct_highs_is_linprogs() -> None:
+    """pipeline.bsp._highs_margin (the special cases' near-threshold LPs through scipy's HiGHS
+    module directly, without linprog's ~1 ms of Python a call) returns linprog's optimum to the
+    bit, so the special-case decisions, hence the trees and their values, are unchanged."""
+    from pipeline.bsp import _highs_margin as direct
+
+    for a, b in _margin_cases(np.random.default_rng(11)):
+        a1 = np.ascontiguousarray(np.c_[a, np.ones(len(a))])
+        assert direct(a1, b.copy()) == _highs_margin(a, b)
+
+
+def test_compiled_margin_agrees_with_highs() -> None:
+    """pipeline.small_lp.max_margin (the special cases' interior LPs, section 3.2): the optimum
+    equals HiGHS's to 1e-7 on random halfspace sets of 4-40 planes, on boxes touching a
+    halfspace (margin 0) and on repeated planes (degenerate); so its decision (margin > tol) is
+    HiGHS's wherever the margin is not within HiGHS's own tolerance of the threshold."""
+    from pipeline.small_lp import max_margin
+
+    for a, b in _margin_cases(np.random.default_rng(7)):
         t = max_margin(np.ascontiguousarray(a), np.ascontiguousarray(b))
         assert np.isfinite(t)
         assert abs(t - _highs_margin(a, b)) < 1e-7, (t, _highs_margin(a, b))

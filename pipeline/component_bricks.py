@@ -289,13 +289,13 @@ def _finish_continuation(parts, level, coords, model, origin, size, depth, t, re
     if len(missing) == 0:
         return none
     cache = cc._CornerCache(model, origin, size / 2**depth, t)
-    vals = cc._corner_values(cache, missing, 1)
+    signs = cc._corner_signs(cache, missing, 1)
     have = np.sort(np.concatenate([have, cc.pack(missing)]))
     sub = {"continuation_cells": 0}
-    cells, vals, _ = cc._continuation(missing, vals, cache, depth, origin, size, region, sub, have=have)
+    cells, signs, _ = cc._continuation(missing, signs, cache, depth, origin, size, region, sub, have=have)
     st["continuation_cells"] += len(missing) + sub["continuation_cells"]
     st["corner_evaluations"] += cache.evaluations
-    kinds = cc._finest_kinds(cells, vals)
+    kinds = cc._finest_kinds(cells, signs)
     c = np.concatenate([kinds[cc.INSIDE][0], kinds[cc.BORDER][0]])
     k = np.concatenate([np.full(len(kinds[cc.INSIDE][0]), cc.INSIDE, np.int8),
                         np.full(len(kinds[cc.BORDER][0]), cc.BORDER, np.int8)])

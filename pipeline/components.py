@@ -277,9 +277,20 @@ class _CornerCache:
         return vals[inv.reshape(-1)].reshape(lattice.shape[:-1])
 
 
-def _corner_values(cache: _CornerCache, coords: np.ndarray, scale: int) -> np.ndarray:
+def _corner_signs(cache: _CornerCache, coords: np.ndarray, scale: int) -> np.ndarray:
+    """Corner signs of cells, one byte each: bit a set when f > 0 at corner a (a = 4i + 2j + k;
+    NaN counts as outside). Algorithm 1 and the marking use the signs only (eq. 3: the control
+    range decides by them), so a cell carries one byte instead of its 8 values."""
     lattice = (coords[:, None, :] + _CORNERS[None]) * scale
-    return cache.values(lattice)
+    return _sign_bits(cache.values(lattice) > 0)
+
+
+def _sign_bits(positive: np.ndarray) -> np.ndarray:
+    """(N, 8) booleans -> (N,) uint8, bit a = column a."""
+    return np.packbits(positive.reshape(-1, 8), axis=1, bitorder="little")[:, 0]
+
+
+_POPCOUNT = np.array([bin(b).count("1") for b in range(256)], np.int64)
 
 
 _LAT27 = np.array([[i, j, k] for i in range(3) for j in range(3) for k in range(3)], np.int64)
@@ -288,18 +299,25 @@ _FROM_PARENT = np.array([int(np.dot(o // 2, (4, 2, 1))) for o in _LAT27[_EVEN27]
 _CHILD_IDX = np.array([[int(np.dot(o + c, (9, 3, 1))) for c in _CORNERS] for o in _CORNERS])  # (child, corner)
 
 
-def _child_corner_values(cache: _CornerCache, parents: np.ndarray, pvals: np.ndarray, scale: int) -> np.ndarray:
-    """Corner values of the 8 children of every parent, (P*8, 8): the parent's corners are
-    reused and only the 19 new lattice points per parent are evaluated."""
-    if len(parents) == 0:
-        return np.zeros((0, 8))
+CHILD_CHUNK = 1 << 16  # parents per evaluation of their new lattice points (19 points each)
+
+
+def _child_corner_signs(cache: _CornerCache, parents: np.ndarray, psigns: np.ndarray, scale: int) -> np.ndarray:
+    """Corner signs of the 8 children of every parent, (P*8,) bytes in child order: the
+    parent's corners are reused and only the 19 new lattice points per parent are evaluated,
+    a chunk of parents at a time (the points of every parent at once would be ~0.5 KB each)."""
+    out = np.empty(len(parents) * 8, np.uint8)
+    parents = np.ascontiguousarray(parents, dtype=np.int64)
+    origin, step = np.asarray(cache.origin, np.float64), float(cache.step)
     # points shared by neighbouring parents are evaluated once per parent: with the compiled
     # model that is cheaper than finding the duplicates (a sort of every key)
-    pts = _new_lattice_points(np.ascontiguousarray(parents, dtype=np.int64), _LAT27[~_EVEN27], int(scale),
-                              np.asarray(cache.origin, np.float64), float(cache.step))
-    fv = cache.evaluate(pts)
-    return _assemble_children(np.ascontiguousarray(pvals, dtype=np.float64), fv.reshape(len(parents), -1),
-                              _FROM_PARENT, np.flatnonzero(_EVEN27), np.flatnonzero(~_EVEN27), _CHILD_IDX)
+    for s in range(0, len(parents), CHILD_CHUNK):
+        e = min(s + CHILD_CHUNK, len(parents))
+        pts = _new_lattice_points(parents[s:e], _LAT27[~_EVEN27], int(scale), origin, step)
+        pos = (cache.evaluate(pts) > 0).reshape(e - s, -1)
+        out[8 * s:8 * e] = _assemble_children(psigns[s:e], pos, _FROM_PARENT, np.flatnonzero(_EVEN27),
+                                              np.flatnonzero(~_EVEN27), _CHILD_IDX)
+    return out
 
 
 @numba.njit(cache=True)
@@ -313,20 +331,23 @@ def _new_lattice_points(parents, offsets, scale, origin, step):
     return out
 
 
-@numba.njit(cache=True)
-def _assemble_children(pvals, new, from_parent, even, odd, child_idx):
-    """(P*8, 8) child corner values from the parent corners and the new lattice values."""
-    n = pvals.shape[0]
-    out = np.empty((n * 8, 8))
-    lat = np.empty(27)
-    for p in range(n):
+@numba.njit(cache=True, parallel=True)
+def _assemble_children(psigns, new, from_parent, even, odd, child_idx):
+    """(P*8,) child corner signs from the parents' corner signs and the new lattice points'."""
+    n = psigns.shape[0]
+    out = np.empty(n * 8, np.uint8)
+    for p in numba.prange(n):
+        lat = np.empty(27, np.bool_)
         for e in range(even.shape[0]):
-            lat[even[e]] = pvals[p, from_parent[e]]
+            lat[even[e]] = (psigns[p] >> from_parent[e]) & 1
         for o in range(odd.shape[0]):
             lat[odd[o]] = new[p, o]
         for c in range(8):
+            b = 0
             for k in range(8):
-                out[p * 8 + c, k] = lat[child_idx[c, k]]
+                if lat[child_idx[c, k]]:
+                    b |= 1 << k
+            out[p * 8 + c] = b
     return out
 
 
@@ -338,9 +359,22 @@ def _affine(model: Node, lo: np.ndarray, hi: np.ndarray, t: float) -> tuple[np.n
 
 
 def _in_region(coords: np.ndarray, level: int, origin, size, rlo, rhi) -> np.ndarray:
-    c = size / 2**level
-    lo = origin + coords * c
-    return np.all((lo <= rhi) & (lo + c >= rlo), axis=1)
+    """Cells of ``level`` whose box meets the region [rlo, rhi] (closed)."""
+    return _region_mask(np.ascontiguousarray(coords, dtype=np.int64), size / 2**level, np.asarray(origin, float),
+                        np.broadcast_to(np.asarray(rlo, float), 3).copy(),
+                        np.broadcast_to(np.asarray(rhi, float), 3).copy())
+
+
+@numba.njit(cache=True, parallel=True)
+def _region_mask(coords, c, origin, rlo, rhi):
+    out = np.empty(coords.shape[0], np.bool_)
+    for r in numba.prange(coords.shape[0]):
+        ok = True
+        for a in range(3):
+            lo = origin[a] + coords[r, a] * c
+            ok = ok and lo <= rhi[a] and lo + c >= rlo[a]
+        out[r] = ok
+    return out
 
 
 def _unique_rows(a: np.ndarray) -> np.ndarray:
@@ -352,7 +386,7 @@ def _children(coords: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, parallel=True)
-def _missing_edge_neighbours(coords, vals, have, limit):
+def _missing_edge_neighbours(coords, signs, have, limit):
     """Algorithm 1, continuation: for every edge whose end signs differ, the cells sharing the
     edge that are not in ``have`` (sorted packed keys). Returns their coordinates (repeats).
     Two parallel passes (count, then write at each cell's offset): the same rows in the same
@@ -361,12 +395,12 @@ def _missing_edge_neighbours(coords, vals, have, limit):
     count = np.zeros(n + 1, np.int64)
     dummy = np.empty((0, 3), np.int64)
     for r in numba.prange(n):
-        count[r + 1] = _edge_neighbours(coords, vals, have, limit, r, dummy, 0)
+        count[r + 1] = _edge_neighbours(coords, signs, have, limit, r, dummy, 0)
     start = np.cumsum(count)
     out = np.empty((start[n], 3), np.int64)
     for r in numba.prange(n):
         if start[r + 1] > start[r]:
-            _edge_neighbours(coords, vals, have, limit, r, out, start[r])
+            _edge_neighbours(coords, signs, have, limit, r, out, start[r])
     return out
 
 
@@ -377,7 +411,7 @@ def _moved(q0, q1, q2, axis, d):
 
 
 @numba.njit(cache=True)
-def _edge_neighbours(coords, vals, have, limit, r, out, at):
+def _edge_neighbours(coords, signs, have, limit, r, out, at):
     """The missing edge neighbours of cell r, written to out[at:] when out has rows; their count."""
     found = 0
     for a in range(8):
@@ -385,7 +419,7 @@ def _edge_neighbours(coords, vals, have, limit, r, out, at):
             bit = 4 >> axis
             if a & bit:
                 continue
-            if (vals[r, a] > 0) == (vals[r, a | bit] > 0):
+            if ((signs[r] >> a) & 1) == ((signs[r] >> (a | bit)) & 1):
                 continue
             u = (axis + 1) % 3
             v = (axis + 2) % 3
@@ -405,12 +439,6 @@ def _edge_neighbours(coords, vals, have, limit, r, out, at):
                         out[at + found, 0], out[at + found, 1], out[at + found, 2] = q0, q1, q2
                     found += 1
     return found
-
-
-@dataclass
-class _Level:
-    coords: np.ndarray
-    vals: np.ndarray
 
 
 def enumerate_cells(model: Node, origin, size: float, depth: int, t: float = 0.0,
@@ -443,32 +471,32 @@ def enumerate_in_brick(model: Node, origin, size: float, depth: int, t: float = 
     st = {"affine_tests": 0, "affine_skipped": 0, "cells_visited": 0, "continuation_cells": 0, "levels": []}
     kept_l, kept_c, kept_k, kept_p = [], [], [], []
     cells = np.zeros((1, 3), np.int64)
-    vals = _corner_values(cache, cells, 1 << depth) if continuation else None
+    signs = _corner_signs(cache, cells, 1 << depth) if continuation else None
     escaped = np.zeros((0, 3), np.int64)
     for lv in range(depth + 1):
         ok = _in_region(cells, lv, origin, size, rlo, rhi)
         if brick is not None:
             ok &= _meets(cells, lv, depth, brick)
         cells = cells[ok]
-        vals = vals[ok] if continuation else None
+        signs = signs[ok] if continuation else None
         if len(cells) == 0:
             break
         st["cells_visited"] += len(cells)
         if lv == depth:
-            lev, escaped = _finest(model, cells, vals, origin, size, depth, t, cache, st, continuation,
+            lev, escaped = _finest(model, cells, signs, origin, size, depth, t, cache, st, continuation,
                                    (rlo, rhi), brick)
             for kind, (c, frac) in lev.items():
                 kept_l.append(np.full(len(c), lv)), kept_c.append(c)
                 kept_k.append(np.full(len(c), kind, np.int8)), kept_p.append(frac)
             st["levels"].append({"level": lv, "cells": int(len(cells))})
             break
-        inside, split = _classify(model, cells, vals, lv, origin, size, t, st)
+        inside, split = _classify(model, cells, signs, lv, origin, size, t, st)
         kept_l.append(np.full(int(inside.sum()), lv)), kept_c.append(cells[inside])
         kept_k.append(np.full(int(inside.sum()), INSIDE, np.int8)), kept_p.append(np.ones(int(inside.sum())))
         st["levels"].append({"level": lv, "cells": int(len(cells)), "inside": int(inside.sum()),
                              "subdivided": int(split.sum())})
         if continuation and lv < depth:
-            vals = _child_corner_values(cache, cells[split], vals[split], 1 << (depth - lv - 1))
+            signs = _child_corner_signs(cache, cells[split], signs[split], 1 << (depth - lv - 1))
         cells = _children(cells[split])
     st["corner_evaluations"] = cache.evaluations
     st["seconds"] = round(time.perf_counter() - t0, 4)
@@ -489,14 +517,11 @@ def _cat(parts: list, shape: tuple, dtype) -> np.ndarray:
     return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
 
 
-def _classify(model, cells, vals, lv, origin, size, t, st) -> tuple[np.ndarray, np.ndarray]:
+def _classify(model, cells, signs, lv, origin, size, t, st) -> tuple[np.ndarray, np.ndarray]:
     """Coarse level: (inside, subdivide) masks. A sign change on the corners proves a zero
     (control range, eq. 3) and skips the affine test; other cells are bounded by RAA."""
-    if vals is not None:
-        npos = (vals > 0).sum(axis=1)
-        known = (npos > 0) & (npos < 8)
-    else:
-        known = np.zeros(len(cells), bool)
+    # mixed corner signs (bits neither all clear nor all set) prove a zero
+    known = (signs != 0) & (signs != 255) if signs is not None else np.zeros(len(cells), bool)
     test = ~known
     c = size / 2**lv
     lo = origin + cells[test] * c
@@ -510,7 +535,7 @@ def _classify(model, cells, vals, lv, origin, size, t, st) -> tuple[np.ndarray, 
     return inside, split
 
 
-def _finest(model, cells, vals, origin, size, depth, t, cache, st, continuation, region,
+def _finest(model, cells, signs, origin, size, depth, t, cache, st, continuation, region,
             brick=None) -> tuple[dict, np.ndarray]:
     """Finest level: control range only (continuation) or affine only ([17]); also the
     continuation's cells outside ``brick`` (see enumerate_in_brick)."""
@@ -523,29 +548,29 @@ def _finest(model, cells, vals, origin, size, depth, t, cache, st, continuation,
         border = ~inside & ~(fhi < 0)
         return {INSIDE: (cells[inside], np.ones(int(inside.sum()))),
                 BORDER: (cells[border], np.full(int(border.sum()), 0.5))}, np.zeros((0, 3), np.int64)
-    cells, vals, escaped = _continuation(cells, vals, cache, depth, origin, size, region, st, brick)
-    return _finest_kinds(cells, vals), escaped
+    cells, signs, escaped = _continuation(cells, signs, cache, depth, origin, size, region, st, brick)
+    return _finest_kinds(cells, signs), escaped
 
 
-def _finest_kinds(cells: np.ndarray, vals: np.ndarray) -> dict:
+def _finest_kinds(cells: np.ndarray, signs: np.ndarray) -> dict:
     """Finest cells by the control range (eq. 3): all corners positive -> inside, mixed -> border."""
-    npos = (vals > 0).sum(axis=1)
+    npos = _POPCOUNT[signs]
     inside = npos == 8
     border = (npos > 0) & (npos < 8)
     return {INSIDE: (cells[inside], np.ones(int(inside.sum()))),
             BORDER: (cells[border], npos[border] / 8.0)}
 
 
-def _continuation(cells, vals, cache, depth, origin, size, region, st, brick=None, have=None):
+def _continuation(cells, signs, cache, depth, origin, size, region, st, brick=None, have=None):
     """Algorithm 1: from every cell with a sign-changing edge, enumerate the not yet enumerated
     cells that share the edge, until no new cell appears (they hold a zero of f on that edge).
     ``have``: sorted packed keys already enumerated (default: ``cells``). With ``brick`` the
     walk stays inside it and the cells it would enter outside are returned as escaped."""
     have = np.sort(pack(cells)) if have is None else have
-    frontier_c, frontier_v = cells, vals
-    added_c, added_v, escaped = [cells], [vals], [np.zeros((0, 3), np.int64)]
+    frontier_c, frontier_s = cells, signs
+    added_c, added_s, escaped = [cells], [signs], [np.zeros((0, 3), np.int64)]
     while len(frontier_c):
-        nb = _unique_rows(_missing_edge_neighbours(frontier_c, frontier_v, have, 1 << depth))
+        nb = _unique_rows(_missing_edge_neighbours(frontier_c, frontier_s, have, 1 << depth))
         new = nb[_in_region(nb, depth, origin, size, *region)]
         if brick is not None:
             inner = _meets(new, depth, depth, brick)
@@ -553,13 +578,13 @@ def _continuation(cells, vals, cache, depth, origin, size, region, st, brick=Non
             new = new[inner]
         if len(new) == 0:
             break
-        nv = _corner_values(cache, new, 1)
+        ns = _corner_signs(cache, new, 1)
         st["continuation_cells"] += len(new)
         have = np.sort(np.concatenate([have, pack(new)]))
         added_c.append(new)
-        added_v.append(nv)
-        frontier_c, frontier_v = new, nv
-    return np.concatenate(added_c), np.concatenate(added_v), _unique_rows(np.concatenate(escaped))
+        added_s.append(ns)
+        frontier_c, frontier_s = new, ns
+    return np.concatenate(added_c), np.concatenate(added_s), _unique_rows(np.concatenate(escaped))
 
 
 # --- section 4.2: marking with propagation ---------------------------------------------------------

@@ -96,9 +96,10 @@ def test_continuation_off_is_plain_affine_subdivision_and_agrees():
 
 def test_continuation_recovers_cells_the_descent_did_not_reach():
     model = node(sphere((0, 0, 0), 0.5))
-    vals = np.array([[1.0, -1, -1, -1, -1, -1, -1, -1]])  # only the edges at corner 0 change sign
+    signs = cc._sign_bits(np.array([[1.0, -1, -1, -1, -1, -1, -1, -1]]) > 0)  # only corner 0's edges change sign
+    assert signs.tolist() == [1]
     have = np.sort(cc.pack(np.array([[5, 5, 5]])))
-    nb = cc._unique_rows(cc._missing_edge_neighbours(np.array([[5, 5, 5]]), vals, have, 64))
+    nb = cc._unique_rows(cc._missing_edge_neighbours(np.array([[5, 5, 5]]), signs, have, 64))
     assert {tuple(r) for r in nb} == {(4, 4, 5), (4, 5, 4), (4, 5, 5), (5, 4, 4), (5, 4, 5), (5, 5, 4)}
     # an unclipped descent reaches every cell across a sign-changing edge itself
     full = cc.enumerate_cells(model, *cube(), 6)

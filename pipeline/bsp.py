@@ -352,6 +352,7 @@ class Tree:
     mode: np.ndarray
     splits: int
     depth: int
+    surface: np.ndarray | None = None  # triangles (T, 3, 3) of a closed mesh: the field's zero set
 
 
 def _per_polygon(values: np.ndarray, owner: np.ndarray, q: int) -> tuple[np.ndarray, np.ndarray]:
@@ -891,6 +892,7 @@ class BSPField:
         self.stats = stats
         self.scale = scale
         self.dim = tree.normals.shape[1]
+        self.surface = None  # a closed mesh's triangles (T, 3, 3), set by from_mesh: the zero set
 
     @classmethod
     def from_polygons(cls, vertices: np.ndarray, faces: np.ndarray, rfunc: str = "r0",
@@ -921,8 +923,10 @@ class BSPField:
         faces = np.asarray(mesh.faces, dtype=np.int64)
         if mesh.is_watertight and mesh.volume < 0:
             faces = faces[:, ::-1]
-        return cls.from_polygons(mesh.vertices, faces, rfunc, planes, seed, special_cases,
-                                 max_candidates)
+        field = cls.from_polygons(mesh.vertices, faces, rfunc, planes, seed, special_cases, max_candidates)
+        if mesh.is_watertight and mesh.is_winding_consistent:  # the zero set is this surface
+            field.surface = np.asarray(mesh.vertices, dtype=np.float64)[faces]
+        return field
 
     @classmethod
     def from_polygon2d(cls, loops: list[np.ndarray], **kw) -> BSPField:
@@ -937,7 +941,9 @@ class BSPField:
 
     def with_rfunc(self, rfunc: str) -> BSPField:
         """The same tree evaluated with another R-function family (no rebuild)."""
-        return BSPField(self.tree, rfunc, dict(self.stats), self.scale)
+        other = BSPField(self.tree, rfunc, dict(self.stats), self.scale)
+        other.surface = self.surface
+        return other
 
     def _args(self):
         t = self.tree
@@ -979,5 +985,6 @@ class BSPField:
         if getattr(self, "_minmax", None) is None:
             t = self.tree
             nn, oo, pp, qq, mm = bsp_minmax.regroup_chains(t.normals, t.offsets, t.pos, t.neg, t.mode)
-            self._minmax = Tree(nn, oo, pp, qq, mm, t.splits, int(bsp_minmax.tree_depth(pp, qq)))
+            self._minmax = Tree(nn, oo, pp, qq, mm, t.splits, int(bsp_minmax.tree_depth(pp, qq)),
+                                getattr(self, "surface", None))
         return self._minmax

@@ -592,3 +592,148 @@ def _normal_keys(normals: np.ndarray) -> np.ndarray:
         for axis in range(normals.shape[1]):
             key |= ((q[:, axis] >> bit) & 1) << (bit * normals.shape[1] + axis)
     return key
+
+
+# --- the surface: which boxes the zero set can meet ------------------------------------------------
+#
+# The zero set of the BSP-field of a closed mesh is its surface (bsp-fields.txt section 3.3.2: on a
+# node's plane outside its polygons both sides have the same sign, so f != 0 there), to the build's
+# tolerances (1e-9 x the mesh size: coplanar merges, splits). So a box that no triangle comes near
+# holds no zero of the field and has one sign, the sign of any of its points: the voxeliser culls
+# such boxes from a triangle BVH query and one point value instead of an interval walk of the tree
+# over the box (pipeline.tape.bound_cull_decide), which on a smooth 50k-face mesh visits hundreds of
+# nearly tied planes per box.
+
+BVH_LEAF = 4  # triangles per BVH leaf
+BVH_STACK = 128  # stack room of a query (the tree is balanced: depth ~ log2(triangles / BVH_LEAF))
+
+
+@njit(cache=True)
+def surface_bvh(tris):
+    """A bounding-volume hierarchy of triangles (T, 3, 3): (tris in leaf order (T, 9), node boxes
+    (N, 6) lo/hi, node children (N, 2) (-1: a leaf), node triangle spans (N, 2) first/count).
+    Triangles are sorted by the Morton code of their centroids and split at the middle of each
+    range (in whole leaves), so the tree is balanced; node 0 is the root, children come after their parent."""
+    t = tris.shape[0]
+    cen = np.empty((t, 3))
+    for i in range(t):
+        for d in range(3):
+            cen[i, d] = (tris[i, 0, d] + tris[i, 1, d] + tris[i, 2, d]) / 3.0
+    key = np.zeros(t, np.int64)
+    if t:
+        lo = np.empty(3)
+        ext = np.empty(3)
+        for d in range(3):
+            lo[d] = cen[:, d].min()
+            ext[d] = max(cen[:, d].max() - lo[d], 1e-300)
+        for i in range(t):
+            k = 0
+            for bit in range(9, -1, -1):
+                for d in range(3):
+                    q = min(1023, max(0, int((cen[i, d] - lo[d]) / ext[d] * 1023.0)))
+                    k = (k << 1) | ((q >> bit) & 1)
+            key[i] = k
+    order = np.argsort(key, kind="mergesort")
+    flat = np.empty((t, 9))
+    for i in range(t):
+        for v in range(3):
+            for d in range(3):
+                flat[i, 3 * v + d] = tris[order[i], v, d]
+    cap = 2 * ((t + BVH_LEAF - 1) // BVH_LEAF) + 1
+    box = np.empty((cap, 6))
+    kid = np.full((cap, 2), -1, np.int64)
+    span = np.zeros((cap, 2), np.int64)
+    stack = np.empty((cap, 3), np.int64)
+    stack[0, 0], stack[0, 1], stack[0, 2] = 0, 0, t
+    top, n = 1, 1
+    while top > 0:
+        top -= 1
+        j, i0, i1 = stack[top, 0], stack[top, 1], stack[top, 2]
+        span[j, 0], span[j, 1] = i0, i1 - i0
+        if i1 - i0 <= BVH_LEAF:
+            continue
+        mid = i0 + BVH_LEAF * ((i1 - i0 + 2 * BVH_LEAF - 1) // (2 * BVH_LEAF))  # full leaves: <= cap nodes
+        kid[j, 0], kid[j, 1] = n, n + 1
+        stack[top, 0], stack[top, 1], stack[top, 2] = n, i0, mid
+        stack[top + 1, 0], stack[top + 1, 1], stack[top + 1, 2] = n + 1, mid, i1
+        top += 2
+        n += 2
+    for j in range(n - 1, -1, -1):  # children after parents: boxes bottom-up
+        if kid[j, 0] < 0:
+            for d in range(3):
+                box[j, d], box[j, 3 + d] = np.inf, -np.inf
+            for i in range(span[j, 0], span[j, 0] + span[j, 1]):
+                for v in range(3):
+                    for d in range(3):
+                        box[j, d] = min(box[j, d], flat[i, 3 * v + d])
+                        box[j, 3 + d] = max(box[j, 3 + d], flat[i, 3 * v + d])
+        else:
+            a, b = kid[j, 0], kid[j, 1]
+            for d in range(3):
+                box[j, d] = min(box[a, d], box[b, d])
+                box[j, 3 + d] = max(box[a, 3 + d], box[b, 3 + d])
+    return flat, box[:n].copy(), kid[:n].copy(), span[:n].copy()
+
+
+@njit(cache=True, inline="always")
+def _axis_apart(p0, p1, p2, r):
+    """The projections p0..p2 of a triangle onto an axis miss the box's [-r, r]."""
+    return min(p0, min(p1, p2)) > r or max(p0, max(p1, p2)) < -r
+
+
+@njit(cache=True)
+def triangle_meets_box(tri, i, c0, c1, c2, e0, e1, e2):
+    """Does triangle i of ``tri`` (rows of 9) meet the box of centre c and half-sizes e
+    (separating-axis test of Akenine-Moeller: the box's 3 axes, the triangle's normal, the 9 cross
+    products of edges and axes)? Degenerate triangles pass the tests they cannot fail."""
+    v00, v01, v02 = tri[i, 0] - c0, tri[i, 1] - c1, tri[i, 2] - c2
+    v10, v11, v12 = tri[i, 3] - c0, tri[i, 4] - c1, tri[i, 5] - c2
+    v20, v21, v22 = tri[i, 6] - c0, tri[i, 7] - c1, tri[i, 8] - c2
+    if _axis_apart(v00, v10, v20, e0) or _axis_apart(v01, v11, v21, e1) or _axis_apart(v02, v12, v22, e2):
+        return False
+    f00, f01, f02 = v10 - v00, v11 - v01, v12 - v02
+    f10, f11, f12 = v20 - v10, v21 - v11, v22 - v12
+    f20, f21, f22 = v00 - v20, v01 - v21, v02 - v22
+    n0, n1, n2 = f01 * f12 - f02 * f11, f02 * f10 - f00 * f12, f00 * f11 - f01 * f10
+    if abs(n0 * v00 + n1 * v01 + n2 * v02) > e0 * abs(n0) + e1 * abs(n1) + e2 * abs(n2):
+        return False
+    for k in range(3):
+        g0, g1, g2 = (f00, f01, f02) if k == 0 else ((f10, f11, f12) if k == 1 else (f20, f21, f22))
+        # axis x cross g = (0, -g2, g1)
+        if _axis_apart(-g2 * v01 + g1 * v02, -g2 * v11 + g1 * v12, -g2 * v21 + g1 * v22, e1 * abs(g2) + e2 * abs(g1)):
+            return False
+        # axis y cross g = (g2, 0, -g0)
+        if _axis_apart(g2 * v00 - g0 * v02, g2 * v10 - g0 * v12, g2 * v20 - g0 * v22, e0 * abs(g2) + e2 * abs(g0)):
+            return False
+        # axis z cross g = (-g1, g0, 0)
+        if _axis_apart(-g1 * v00 + g0 * v01, -g1 * v10 + g0 * v11, -g1 * v20 + g0 * v21, e0 * abs(g1) + e1 * abs(g0)):
+            return False
+    return True
+
+
+@njit(cache=True)
+def box_near_surface(lo0, lo1, lo2, hi0, hi1, hi2, margin, root, tri, box, kid, span, stack):
+    """Does a triangle of the BVH at ``root`` come within ``margin`` of the box (in each axis: the
+    box grown by ``margin`` meets it)? False proves that no triangle meets the grown box.
+    ``stack``: int64 scratch of BVH_STACK."""
+    a0, a1, a2 = lo0 - margin, lo1 - margin, lo2 - margin
+    b0, b1, b2 = hi0 + margin, hi1 + margin, hi2 + margin
+    c0, c1, c2 = 0.5 * (a0 + b0), 0.5 * (a1 + b1), 0.5 * (a2 + b2)
+    e0, e1, e2 = 0.5 * (b0 - a0) + margin, 0.5 * (b1 - a1) + margin, 0.5 * (b2 - a2) + margin
+    top = 0
+    stack[0] = root
+    while top >= 0:
+        j = stack[top]
+        top -= 1
+        if (box[j, 0] > b0 or box[j, 3] < a0 or box[j, 1] > b1 or box[j, 4] < a1 or box[j, 2] > b2
+                or box[j, 5] < a2):
+            continue
+        if kid[j, 0] >= 0:
+            stack[top + 1] = kid[j, 0]
+            stack[top + 2] = kid[j, 1]
+            top += 2
+            continue
+        for i in range(span[j, 0], span[j, 0] + span[j, 1]):
+            if triangle_meets_box(tri, i, c0, c1, c2, e0, e1, e2):
+                return True
+    return False

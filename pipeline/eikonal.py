@@ -45,7 +45,7 @@ from scipy import ndimage
 
 from pipeline.eikonal_bricks import BrickedFIM
 from pipeline.fim import EXCLUDED, FREE, FROZEN, block_colour, fim, init_interface
-from pipeline.grid import LEAF, BlockGrid, linear_transform, pack_keys, vdb, write_blocks
+from pipeline.grid import LEAF, BlockGrid, linear_transform, pack_keys, vdb
 
 SECOND_ORDER_VISITS = 50  # block visits per block before a second-order pass is abandoned
 _FACE_DIRS = np.array(
@@ -122,17 +122,27 @@ def _flood_sign(sign, nbr):
     """
     nb = sign.shape[0]
     n_zero = 0
+    has_zero = np.zeros(nb, dtype=np.bool_)
     for b in range(nb):
         for i in range(8):
             for j in range(8):
                 for k in range(8):
                     if sign[b, i, j, k] == 0:
                         n_zero += 1
+                        has_zero[b] = True
     if n_zero == 0:
         return 0
     queue = np.empty(7 * n_zero + 1, dtype=np.int64)
     tail = 0
     for b in range(nb):
+        # a seed has a 0 neighbour: in its block or a face neighbour (the same seeds, in the same order)
+        near_zero = has_zero[b]
+        for f in range(6):
+            n = nbr[b, f]
+            if n >= 0 and has_zero[n]:
+                near_zero = True
+        if not near_zero:
+            continue
         for i in range(8):
             for j in range(8):
                 for k in range(8):
@@ -720,13 +730,25 @@ def _band_values(values, active, inside, rows, bg, out_v, out_a):
 
 
 def surface_grid(result: EikonalResult, band: float, name: str = "surface", full: bool = False):
-    """pyopenvdb ``FloatGrid`` of :func:`surface_blocks`, class LEVEL_SET, sign flood-filled."""
-    blocks = surface_blocks(result, band, full)
-    grid = vdb.FloatGrid(blocks.background)
+    """pyopenvdb ``FloatGrid`` of :func:`surface_blocks`, class LEVEL_SET, sign flood-filled.
+    The narrow band is written a batch of blocks at a time (never held whole)."""
+    from pipeline.blockwrite import write_batched, write_leaves
+
+    bg = float(band) * result.distance.voxel_size
+    grid = vdb.FloatGrid(bg)
     grid.name = name
-    grid.transform = linear_transform(blocks.voxel_size)
+    grid.transform = linear_transform(result.distance.voxel_size)
     grid.gridClass = vdb.GridClass.LEVEL_SET
-    write_blocks(grid, blocks)
+    if full:
+        write_leaves(grid, surface_blocks(result, band, full))
+    else:
+        dist = result.distance
+        bg32 = np.float32(bg)
+        rows = np.flatnonzero(_near_blocks(dist.values, dist.active, bg32))
+
+        def fill(lo, hi, values, active):
+            _band_values(dist.values, dist.active, result.inside, rows[lo:hi], bg32, values, active)
+        write_batched(grid, dist.origins[rows], fill)
     grid.signedFloodFill()
     grid.prune()
     return grid

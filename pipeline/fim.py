@@ -137,7 +137,8 @@ def _axis_term(buf, sbuf, i, j, k, di, dj, dk, me, order2):
 
 
 @njit(cache=True)
-def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf, sbuf, fbuf, limit_in=np.inf):
+def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf, sbuf, fbuf, limit_in=np.inf,
+                dirty=63):
     """Gauss-Seidel sweeps (alternating the 8 orderings) until block b converges.
 
     First order accepts only decreases (monotone scheme from above); second order accepts
@@ -158,7 +159,23 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
     updates = 0
     sweeps = 0
     st = state[b]
-    fbuf[:] = True
+    if dirty == 63:
+        fbuf[:] = True
+    else:  # the block was stable after its last visit: only voxels that read a changed ghost layer
+        fbuf[:] = False
+        for r in range(depth):
+            if dirty & 1:
+                fbuf[2 + r, 2:10, 2:10] = True
+            if dirty & 2:
+                fbuf[9 - r, 2:10, 2:10] = True
+            if dirty & 4:
+                fbuf[2:10, 2 + r, 2:10] = True
+            if dirty & 8:
+                fbuf[2:10, 9 - r, 2:10] = True
+            if dirty & 16:
+                fbuf[2:10, 2:10, 2 + r] = True
+            if dirty & 32:
+                fbuf[2:10, 2:10, 9 - r] = True
     for it in range(max_sweeps):
         sweeps += 1
         changed = False
@@ -202,6 +219,8 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
                     faces |= (j >= 8 - depth) * 8 | (k < depth) * 16 | (k >= 8 - depth) * 32
         if not changed:
             break
+    if changed:  # stopped by max_sweeps: not stable, the next visit starts from every voxel
+        faces |= 64
     if updates:
         for i in range(8):
             for j in range(8):
@@ -235,6 +254,7 @@ def fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, 
 
 @njit(cache=True)
 def _seed_lists(colour, seeds, nb):
+    """(per-colour lists, their lengths, on-list flags, dirty faces per block: all at first)."""
     lists = np.empty((2, nb), dtype=np.int64)
     counts = np.zeros(2, dtype=np.int64)
     on_list = np.zeros(nb, dtype=np.bool_)
@@ -244,7 +264,8 @@ def _seed_lists(colour, seeds, nb):
             c = colour[s]
             lists[c, counts[c]] = s
             counts[c] += 1
-    return lists, counts, on_list
+    dirty = np.full(nb, 63, dtype=np.int64)
+    return lists, counts, on_list, dirty
 
 
 @njit(cache=True)
@@ -259,15 +280,20 @@ def _take_wave(lists, counts, on_list, c):
 
 
 @njit(cache=True)
-def _finish_wave(work, out, nbr27, colour, lists, counts, on_list):
+def _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty):
     """After a wave (``out`` rows: faces, updates, sweeps per block): the face neighbours whose
-    ghost layers changed go on their colour's list (serial, in list order: the result is
-    deterministic). Returns (visits, updates, sweeps) of the wave."""
+    ghost layers changed go on their colour's list and have that face marked dirty (serial, in
+    list order: the result is deterministic); the wave's blocks are clean again unless they
+    stopped at max_sweeps. Returns (visits, updates, sweeps) of the wave."""
+    for t in range(len(work)):
+        dirty[work[t]] = 63 if out[t, 0] & 64 else 0
     for t in range(len(work)):
         b = work[t]
         for f in range(6):
             if out[t, 0] & (1 << f):
                 n = nbr27[b, FACE_ROWS[f]]
+                if n >= 0:
+                    dirty[n] |= 1 << (f ^ 1)  # n's ghost layer on the face it shares with b
                 if n >= 0 and not on_list[n]:
                     on_list[n] = True
                     cn = colour[n]
@@ -277,17 +303,18 @@ def _finish_wave(work, out, nbr27, colour, lists, counts, on_list):
 
 
 @njit(cache=True)
-def _relax_range(d, state, inside, nbr27, work, lo, hi, limit, tol, max_sweeps, order2, buf, sbuf, out, limit_in):
+def _relax_range(d, state, inside, nbr27, work, lo, hi, limit, tol, max_sweeps, order2, buf, sbuf, out, limit_in,
+                 dirty):
     fbuf = np.empty((12, 12, 12), dtype=np.bool_)
     for t in range(lo, hi):
         out[t, 0], out[t, 1], out[t, 2] = relax_block(d, state, inside, nbr27, work[t], limit, tol, max_sweeps,
-                                                      order2, buf, sbuf, fbuf, limit_in)
+                                                      order2, buf, sbuf, fbuf, limit_in, dirty[work[t]])
 
 
 @njit(cache=True)
 def _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, limit_in):
     """:func:`fim` on one thread (the same waves, so the same result)."""
-    lists, counts, on_list = _seed_lists(colour, seeds, d.shape[0])
+    lists, counts, on_list, dirty = _seed_lists(colour, seeds, d.shape[0])
     buf = np.empty((12, 12, 12))
     sbuf = np.zeros((12, 12, 12), dtype=np.bool_)
     visits, updates, sweeps = 0, 0, 0
@@ -299,8 +326,8 @@ def _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, 
             work = _take_wave(lists, counts, on_list, c)
             out = np.zeros((len(work), 3), dtype=np.int64)
             _relax_range(d, state, inside, nbr27, work, 0, len(work), limit, tol, max_sweeps, order2, buf, sbuf, out,
-                         limit_in)
-            v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list)
+                         limit_in, dirty)
+            v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty)
             visits, updates, sweeps = visits + v, updates + u, sweeps + w
         c = 1 - c
     return visits, updates, sweeps, True
@@ -311,7 +338,7 @@ def _fim_parallel(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps
                   limit_in):
     """:func:`fim` with each wave split into ``chunks`` ranges relaxed in parallel (one buffer
     per range)."""
-    lists, counts, on_list = _seed_lists(colour, seeds, d.shape[0])
+    lists, counts, on_list, dirty = _seed_lists(colour, seeds, d.shape[0])
     bufs = np.empty((chunks, 12, 12, 12))
     sbufs = np.zeros((chunks, 12, 12, 12), dtype=np.bool_)
     visits, updates, sweeps = 0, 0, 0
@@ -326,8 +353,8 @@ def _fim_parallel(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps
             k = min(chunks, m)
             for ch in numba.prange(k):
                 _relax_range(d, state, inside, nbr27, work, ch * m // k, (ch + 1) * m // k, limit, tol, max_sweeps,
-                             order2, bufs[ch], sbufs[ch], out, limit_in)
-            v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list)
+                             order2, bufs[ch], sbufs[ch], out, limit_in, dirty)
+            v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty)
             visits, updates, sweeps = visits + v, updates + u, sweeps + w
         c = 1 - c
     return visits, updates, sweeps, True
@@ -339,33 +366,42 @@ def block_colour(origins: np.ndarray) -> np.ndarray:
 
 
 # --- initialisation next to the zero set -------------------------------------------------------
-@njit(cache=True, inline="always")
-def _value(f, fact, brow, nbr27, b, i, j, k):
-    """(frep value, known) of a voxel given in block b's local coordinates (block n of the
-    working set is row ``brow[n]`` of ``f``, none where -1)."""
-    n, li, lj, lk = locate(nbr27, b, i, j, k)
-    if n < 0:
-        return 0.0, False
-    r = brow[n]
-    if r < 0 or not fact[r, li, lj, lk]:
-        return 0.0, False
-    return f[r, li, lj, lk], True
+@njit(cache=True)
+def _load_frep(f, fact, brow, nbr27, b, fb, ab):
+    """Block b's frep values and their known flags with one layer of every neighbour (faces,
+    edges, corners) into (10,10,10) buffers (local index + 1; block n of the working set is
+    row ``brow[n]`` of ``f``, unknown where -1)."""
+    r0 = brow[b]
+    for i in range(-1, 9):
+        for j in range(-1, 9):
+            for k in range(-1, 9):
+                if 0 <= i < 8 and 0 <= j < 8 and 0 <= k < 8:
+                    ab[i + 1, j + 1, k + 1] = fact[r0, i, j, k]
+                    fb[i + 1, j + 1, k + 1] = f[r0, i, j, k]
+                    continue
+                n, li, lj, lk = locate(nbr27, b, i, j, k)
+                r = brow[n] if n >= 0 else -1
+                if r < 0 or not fact[r, li, lj, lk]:
+                    ab[i + 1, j + 1, k + 1] = False
+                    fb[i + 1, j + 1, k + 1] = 0.0
+                else:
+                    ab[i + 1, j + 1, k + 1] = True
+                    fb[i + 1, j + 1, k + 1] = f[r, li, lj, lk]
 
 
 @njit(cache=True)
-def _quadric_fit(f, fact, brow, nbr27, b, i, j, k, g, hess):
-    """Gradient and Hessian of frep at a voxel by central differences on its 3x3x3
-    neighbourhood (the local quadratic model). False when a neighbour is not in the band, or
-    when the model misses the eight corner samples (which it does not use) by more than
-    ``QUADRIC_RESIDUAL`` voxels: a kink of frep (a CSG edge, min/max) inside the stencil."""
-    vals = np.empty((3, 3, 3))
+def _quadric_fit(fb, ab, i, j, k, g, hess, vals):
+    """Gradient and Hessian of frep at buffer voxel (i, j, k) (:func:`_load_frep`) by central
+    differences on its 3x3x3 neighbourhood (the local quadratic model). False when a neighbour
+    is not in the band, or when the model misses the eight corner samples (which it does not
+    use) by more than ``QUADRIC_RESIDUAL`` voxels: a kink of frep (a CSG edge, min/max) inside
+    the stencil. ``vals``: a (3,3,3) work buffer."""
     for di in range(3):
         for dj in range(3):
             for dk in range(3):
-                v, ok = _value(f, fact, brow, nbr27, b, i + di - 1, j + dj - 1, k + dk - 1)
-                if not ok:
+                if not ab[i + di - 1, j + dj - 1, k + dk - 1]:
                     return False
-                vals[di, dj, dk] = v
+                vals[di, dj, dk] = fb[i + di - 1, j + dj - 1, k + dk - 1]
     c = vals[1, 1, 1]
     g[0] = 0.5 * (vals[2, 1, 1] - vals[0, 1, 1])
     g[1] = 0.5 * (vals[1, 2, 1] - vals[1, 0, 1])
@@ -453,27 +489,31 @@ def _init_rows(f, fact, brow, d, state, nbr27, quadric, rows, counts):
     """:func:`init_interface` over the blocks ``rows``; (frozen, quadric) per row into ``counts``."""
     for t in numba.prange(len(rows)):
         b = rows[t]
-        fb = brow[b]
+        r = brow[b]
+        fbuf = np.empty((10, 10, 10))  # the block with a layer of its neighbours: no lookups per voxel
+        abuf = np.empty((10, 10, 10), np.bool_)
+        _load_frep(f, fact, brow, nbr27, b, fbuf, abuf)
         g = np.empty(3)
         hess = np.empty((3, 3))
+        vals = np.empty((3, 3, 3))
         count = 0
         n_quad = 0
         for i in range(8):
             for j in range(8):
                 for k in range(8):
-                    if not fact[fb, i, j, k] or state[b, i, j, k] == EXCLUDED:
+                    if not fact[r, i, j, k] or state[b, i, j, k] == EXCLUDED:
                         continue
-                    fv = f[fb, i, j, k]
+                    fv = f[r, i, j, k]
                     if fv == 0.0:
                         d[b, i, j, k] = 0.0
                         state[b, i, j, k] = FROZEN
                         count += 1
                         continue
-                    cap, g2 = _crossing_cap(f, fact, brow, nbr27, b, i, j, k, fv)
+                    cap, g2 = _crossing_cap(fbuf, abuf, i + 1, j + 1, k + 1, fv)
                     if cap == np.inf:
                         continue
                     dist = np.inf
-                    if quadric and _quadric_fit(f, fact, brow, nbr27, b, i, j, k, g, hess):
+                    if quadric and _quadric_fit(fbuf, abuf, i + 1, j + 1, k + 1, g, hess, vals):
                         dist = closest_point_distance(fv, g, hess)
                         if dist > cap + 0.1:
                             dist = np.inf
@@ -489,14 +529,15 @@ def _init_rows(f, fact, brow, d, state, nbr27, quadric, rows, counts):
 
 
 @njit(cache=True)
-def _crossing_cap(f, fact, brow, nbr27, b, i, j, k, fv):
-    """(nearest linearly interpolated axis crossing, |grad f|^2 by central differences)."""
+def _crossing_cap(fb, ab, i, j, k, fv):
+    """(nearest linearly interpolated axis crossing, |grad f|^2 by central differences) at
+    buffer voxel (i, j, k) (:func:`_load_frep`)."""
     cap = np.inf
     g2 = 0.0
     for axis in range(3):
         di, dj, dk = int(axis == 0), int(axis == 1), int(axis == 2)
-        fl, al = _value(f, fact, brow, nbr27, b, i - di, j - dj, k - dk)
-        fh, ah = _value(f, fact, brow, nbr27, b, i + di, j + dj, k + dk)
+        fl, al = fb[i - di, j - dj, k - dk], ab[i - di, j - dj, k - dk]
+        fh, ah = fb[i + di, j + dj, k + dk], ab[i + di, j + dj, k + dk]
         if al and (fv > 0.0) != (fl > 0.0):
             cap = min(cap, fv / (fv - fl))
         if ah and (fv > 0.0) != (fh > 0.0):

@@ -29,8 +29,9 @@ import numpy as np
 from numba import njit, prange
 from scipy.special import expit
 
+from pipeline.blockwrite import write_batched, write_leaves
 from pipeline.eikonal import EikonalResult
-from pipeline.grid import LEAF, BlockGrid, linear_transform, vdb, write_blocks
+from pipeline.grid import LEAF, BlockGrid, linear_transform, negate_active, vdb
 from pipeline.spline import TricubicSpline
 
 STEPS = ("sigmoid", "tanh", "rational")
@@ -116,6 +117,22 @@ def _hfrep_values(dist, active, inside, rows, f, fact, table, mode, slope, outsi
                     out[b, i, j, k] = s * dist[b, i, j, k]
 
 
+def hfrep_grid(hf: BlockGrid, name: str = "hfrep"):
+    """The ``hfrep`` FloatGrid of :func:`hfrep_blocks`' blocks: what ``pipeline.grid.frep_to_vdb``
+    makes of them without boxes (its steps: write the level-set-signed values, sign flood
+    fill, negate the active values, swap the background to -bg), written a batch at a time."""
+    bg = abs(float(hf.background))
+    grid = vdb.FloatGrid(bg)
+    grid.name = name
+    grid.transform = linear_transform(hf.voxel_size)
+    write_leaves(grid, hf, scale=-1.0)
+    grid.signedFloodFill()
+    negate_active(grid)
+    grid.background = -bg  # swaps +bg <-> -bg on inactive values and tiles
+    grid.prune()
+    return grid
+
+
 class HFRepField:
     """Continuous HFRep function (eq. 21) for the model tree: ``evaluate(points) -> values``.
 
@@ -178,15 +195,14 @@ def density_grid(res, ramp: float):
     ramp32 = np.float32(ramp)
     ones = _all_one(d.values, d.active, res.inside, deep, deep_mask, ramp32)
     leaves = np.flatnonzero(~ones)
-    sub = np.empty((len(leaves), LEAF, LEAF, LEAF), np.float32)
-    _density(d.values, d.active, res.inside, deep, deep_mask, ramp32, leaves, sub)
-    blocks = BlockGrid(d.voxel_size, 0.0, d.origins[leaves], sub, sub > 0)
     grid = vdb.FloatGrid(0.0)
     grid.name = "density"
     grid.transform = linear_transform(d.voxel_size)
     grid.gridClass = vdb.GridClass.FOG_VOLUME
-    write_blocks(grid, blocks)
-    del blocks, sub
+
+    def fill(lo, hi, values, active):  # active where > 0
+        _density(d.values, d.active, res.inside, deep, deep_mask, ramp32, leaves[lo:hi], values, active)
+    write_batched(grid, d.origins[leaves], fill)
     from pipeline.hfim import fill_tiles
 
     fill_tiles(grid, d.origins[ones], np.ones(int(ones.sum())))
@@ -208,14 +224,16 @@ def _density_at(values, active, inside, deep, deep_mask, ramp, b, i, j, k):
 
 
 @njit(cache=True, parallel=True)
-def _density(values, active, inside, deep, deep_mask, ramp, rows, out):
-    """out[t] = the density of block rows[t] (:func:`_density_at`)."""
+def _density(values, active, inside, deep, deep_mask, ramp, rows, out, out_a):
+    """out[t] = the density of block rows[t] (:func:`_density_at`), out_a[t] = out[t] > 0."""
     for t in prange(rows.shape[0]):
         b = rows[t]
         for i in range(8):
             for j in range(8):
                 for k in range(8):
-                    out[t, i, j, k] = _density_at(values, active, inside, deep, deep_mask, ramp, b, i, j, k)
+                    x = _density_at(values, active, inside, deep, deep_mask, ramp, b, i, j, k)
+                    out[t, i, j, k] = x
+                    out_a[t, i, j, k] = x > 0
 
 
 @njit(cache=True, parallel=True)

@@ -14,7 +14,6 @@ import numpy as np
 from pydantic import AfterValidator, Field, field_validator, model_validator
 
 from pipeline.attributes import check_formula
-from pipeline.grid import frep_to_vdb
 from stages.base import StageParams
 
 REQUIRES = ("voxelise",)
@@ -77,7 +76,7 @@ class Params(StageParams):
 
 def run(ctx, p: Params) -> dict:
     from pipeline.eikonal import solve_distance, surface_grid
-    from pipeline.hfrep import density_grid, hfrep_blocks
+    from pipeline.hfrep import density_grid, hfrep_blocks, hfrep_grid
     from pipeline.quality import field_report
 
     if ctx.job.memory_estimate:  # the per-stage peak estimate checked before the run (config._check_memory)
@@ -111,7 +110,7 @@ def run(ctx, p: Params) -> dict:
         fill_deep(hf, res, tiles[2])  # the fine blocks' inside voxels beyond the fine solve's limit
     # build the grids one at a time and drop each working copy: at 1024^3 the interior
     # distance is hundreds of millions of voxels
-    hgrid = frep_to_vdb(hf, np.zeros((0, 2, 3), np.int64), "hfrep")
+    hgrid = hfrep_grid(hf)  # frep_to_vdb's grid for these blocks
     hgrid.updateMetadata({**meta, "step": p.step, "slope": p.slope})
     del hf
     if tiles is not None:

@@ -9,7 +9,7 @@ import pytest
 from pipeline.eikonal import signed_distance_blocks
 from pipeline.hfrep import hfrep_blocks, step_function
 from pipeline.quality import deviation_on_blocks, extra_zero_crossings, field_report, gradient_stats
-from tests.test_eikonal import solved, sphere
+from tests.test_eikonal import band_grid, solved, sphere
 
 
 @pytest.fixture(scope="module")
@@ -47,3 +47,70 @@ def test_field_report_equals_the_report_of_the_signed_copy(sph) -> None:
                       **extra_zero_crossings(hf, frep)}}
     assert field_report(frep, res, hf) == want
     assert want["surface"]["gradient"]["voxels"] > 5000 and want["frep"]["deviation"]["voxels"] > 1000
+
+
+def test_fim_dirty_faces_give_the_full_sweeps_result() -> None:
+    """A revisited block starts its sweeps from the voxels next to the faces whose ghost layers
+    changed (fim.relax_block's ``dirty``): the same distances, bit for bit, as starting every
+    visit from every voxel (the serial waves driven here with dirty = all faces)."""
+    from pipeline import eikonal as ek
+    from pipeline import fim as fm
+
+    frep, dom = band_grid(sphere, 48)
+    saved = {}
+    real = ek._flat_pass
+
+    def spy(d, state, inside, nbr27, colour, limit, tol, max_sweeps, limit_in=np.inf):
+        saved.update(d=d.copy(), state=state.copy(), inside=inside, nbr27=nbr27, colour=colour, limit=limit)
+        return real(d, state, inside, nbr27, colour, limit, tol, max_sweeps, limit_in)
+
+    ek._flat_pass = spy
+    try:
+        res = ek.solve_distance(frep, 12 * frep.voxel_size, dom, order=2)
+    finally:
+        ek._flat_pass = real
+    got = saved["d"].copy()
+    seeds = np.nonzero((saved["state"] == fm.FROZEN).reshape(len(got), -1).any(axis=1))[0]
+    ref = saved["d"].copy()
+    lists, counts, on_list, dirty = fm._seed_lists(saved["colour"], seeds, len(ref))
+    buf, sbuf, fbuf = np.empty((12, 12, 12)), np.zeros((12, 12, 12), bool), np.empty((12, 12, 12), bool)
+    c = 0 if counts[0] >= counts[1] else 1
+    visits = 0
+    while counts[0] + counts[1] > 0:
+        if counts[c] > 0:
+            work = fm._take_wave(lists, counts, on_list, c)
+            out = np.zeros((len(work), 3), np.int64)
+            for t, b in enumerate(work):
+                out[t] = fm.relax_block(ref, saved["state"], saved["inside"], saved["nbr27"], b, saved["limit"], 1e-6,
+                                       64, True, buf, sbuf, fbuf, np.inf, 63)
+            fm._finish_wave(work, out, saved["nbr27"], saved["colour"], lists, counts, on_list, dirty)
+            visits += len(work)
+        c = 1 - c
+    fm._fim_serial(got, saved["state"], saved["inside"], saved["nbr27"], saved["colour"], seeds, saved["limit"], 1e-6,
+                  64, True, 1 << 40, np.inf)
+    assert visits > 1.5 * len(ref)  # blocks are revisited
+    assert np.array_equal(got, ref) and res.stats["converged"]
+
+
+def test_batched_writer_builds_the_same_grid() -> None:
+    """blockwrite.write_leaves (runs packed by a compiled pass, split where a batch ends) gives
+    the grid write_blocks gives: same values, active voxels and leaves."""
+    from pipeline.blockwrite import write_leaves
+    from pipeline.grid import vdb, write_blocks
+
+    frep, (lo, hi) = band_grid(sphere, 48)
+    shape = tuple(int(x) for x in hi - lo + 9)
+    grids = []
+    for write in (lambda g: write_blocks(g, frep, -1.0), lambda g: write_leaves(g, frep, -1.0, batch=37)):
+        g = vdb.FloatGrid(float(frep.background))
+        g.name = "g"
+        write(g)
+        a = np.zeros(shape, np.float32)
+        g.copyToArray(a, tuple(int(x) for x in lo - 8))
+        vdb.ax("@g = 12345.0;", g)
+        m = np.zeros(shape, np.float32)
+        g.copyToArray(m, tuple(int(x) for x in lo - 8))
+        grids.append((a, m == 12345.0, g.leafCount(), g.activeVoxelCount()))
+    (a0, m0, n0, v0), (a1, m1, n1, v1) = grids
+    assert np.array_equal(a0, a1) and np.array_equal(m0, m1) and (n0, v0) == (n1, v1) == (len(frep.origins),
+                                                                                      frep.active_count)

@@ -75,7 +75,6 @@ class Octree:
     kind: np.ndarray  # (N,) int8 INSIDE / BORDER
     pos_frac: np.ndarray  # (N,) fraction of positive corners (1 for inside cells)
     stats: dict = field(default_factory=dict)
-    _lookup: list | None = field(default=None, repr=False)
     _flat: tuple | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
@@ -97,28 +96,28 @@ class Octree:
     def volumes(self) -> np.ndarray:
         return self.cell_size(self.level) ** 3
 
-    def tables(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Per level: (sorted packed keys, cell rows)."""
-        if self._lookup is None:
-            tabs = []
-            for lv in range(self.depth + 1):
-                rows = np.nonzero(self.level == lv)[0]
-                keys = pack(self.coords[rows])
-                order = np.argsort(keys)
-                tabs.append((keys[order], rows[order]))
-            self._lookup = tabs
-        return self._lookup
-
-    def flat_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """All levels' sorted keys and rows in one array each, level l at ``off[l]:off[l+1]``
-        (the form the compiled lookups take)."""
+    def flat_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+        """The search tables of the compiled lookups: the sorted keys and rows of the levels
+        finer than ``c = min(depth, COARSE_LEVEL)`` in one array each (level l at
+        ``off[l]:off[l+1]``), the cells' levels, and a dense table over the level-c lattice
+        holding the row of the kept cell of level <= c covering each of its cells (-1: none),
+        so that a search stops after one lookup for every coarse level; and c."""
         if self._flat is None:
-            tabs = self.tables()
+            c = min(self.depth, COARSE_LEVEL)
+            level = np.ascontiguousarray(self.level, dtype=np.int64)
+            coords = np.ascontiguousarray(self.coords, dtype=np.int64)
             off = np.zeros(self.depth + 2, np.int64)
-            off[1:] = np.cumsum([len(k) for k, _ in tabs])
-            keys = np.concatenate([k for k, _ in tabs]) if tabs else np.zeros(0, np.int64)
-            rows = np.concatenate([r for _, r in tabs]) if tabs else np.zeros(0, np.int64)
-            self._flat = (keys.astype(np.int64), rows.astype(np.int64), off)
+            keys, rows = [], []
+            for lv in range(c + 1, self.depth + 1):
+                r = np.flatnonzero(level == lv)
+                k = pack(coords[r])
+                order = np.argsort(k)
+                keys.append(k[order]), rows.append(r[order])
+                off[lv + 1] = len(r)
+            off = np.cumsum(off)
+            coarse = np.full(1 << (3 * c), -1, np.int64)
+            _paint_coarse(level, coords, c, coarse)
+            self._flat = (_cat(keys, (0,), np.int64), _cat(rows, (0,), np.int64), off, level, coarse, c)
         return self._flat
 
     def find(self, level: int, coords: np.ndarray) -> np.ndarray:
@@ -136,25 +135,50 @@ class Octree:
 
 
 @numba.njit(cache=True, inline="always")
-def _bsearch(keys, lo, hi, q):
-    """Index of ``q`` in the sorted ``keys[lo:hi]``, -1 when absent."""
-    end = hi
+def _lower_bound(keys, lo, hi, q):
+    """First index in the sorted keys[lo:hi] whose key is not below q (hi when none)."""
     while lo < hi:
         mid = (lo + hi) >> 1
         if keys[mid] < q:
             lo = mid + 1
         else:
             hi = mid
-    return lo if lo < end and keys[lo] == q else -1
+    return lo
 
 
 @numba.njit(cache=True, inline="always")
-def _find_one(x, y, z, level, keys, rows, off):
-    """Row of the kept cell (level, x, y, z) or of its nearest kept ancestor, -1 when none."""
+def _bsearch(keys, lo, hi, q):
+    """Index of ``q`` in the sorted ``keys[lo:hi]``, -1 when absent."""
+    at = _lower_bound(keys, lo, hi, q)
+    return at if at < hi and keys[at] == q else -1
+
+
+COARSE_LEVEL = 7  # levels up to this one are looked up in a dense table (8^7 rows: 16 MiB)
+
+
+@numba.njit(cache=True, parallel=True)
+def _paint_coarse(level, coords, c, coarse):
+    """Every kept cell of level <= c writes its row over the level-c cells it covers (kept
+    cells never overlap: the writes never meet)."""
+    for r in numba.prange(level.shape[0]):
+        if level[r] > c:
+            continue
+        sh = c - level[r]
+        x0, y0, z0 = coords[r, 0] << sh, coords[r, 1] << sh, coords[r, 2] << sh
+        for x in range(x0, x0 + (1 << sh)):
+            for y in range(y0, y0 + (1 << sh)):
+                for z in range(z0, z0 + (1 << sh)):
+                    coarse[(x << (2 * c)) | (y << c) | z] = r
+
+
+@numba.njit(cache=True, inline="always")
+def _find_one(x, y, z, level, keys, rows, off, levels, coarse, c):
+    """Row of the kept cell (level, x, y, z) or of its nearest kept ancestor, -1 when none:
+    a binary search per level finer than c, then one lookup in the dense level-c table."""
     lim = 1 << level
     if x < 0 or y < 0 or z < 0 or x >= lim or y >= lim or z >= lim:
         return -1
-    for lv in range(level, -1, -1):
+    for lv in range(level, c, -1):
         s, e = off[lv], off[lv + 1]
         if s == e:
             continue
@@ -163,15 +187,20 @@ def _find_one(x, y, z, level, keys, rows, off):
         pos = _bsearch(keys, s, e, q)
         if pos >= 0:
             return rows[pos]
-    return -1
+    if level >= c:
+        sh = level - c
+        return coarse[((x >> sh) << (2 * c)) | ((y >> sh) << c) | (z >> sh)]
+    sh = c - level  # a coarse query: the entry of its first level-c cell, if not finer than it
+    r = coarse[((x << sh) << (2 * c)) | ((y << sh) << c) | (z << sh)]
+    return r if r >= 0 and levels[r] <= level else -1
 
 
 @numba.njit(cache=True, parallel=True)
-def _find_rows(coords, level, keys, rows, off):
-    """Octree.find compiled: one search per level from ``level`` up, both cores."""
+def _find_rows(coords, level, keys, rows, off, levels, coarse, c):
+    """Octree.find compiled, both cores."""
     out = np.empty(coords.shape[0], np.int64)
     for n in numba.prange(coords.shape[0]):
-        out[n] = _find_one(coords[n, 0], coords[n, 1], coords[n, 2], level, keys, rows, off)
+        out[n] = _find_one(coords[n, 0], coords[n, 1], coords[n, 2], level, keys, rows, off, levels, coarse, c)
     return out
 
 
@@ -183,29 +212,47 @@ def _root(parent, a):
     return a
 
 
-@numba.njit(cache=True)
-def _face_union(level, coords, keys, rows, off):
+UNION_CHUNK = 1 << 20  # cells whose neighbours are searched at once (both cores), 48 MB of them
+
+
+def _face_union(level, coords, keys, rows, off, levels, coarse, c):
     """Section 4.2 marking as union-find: every kept cell is joined with the same-level or
     coarser kept cell across each of its six faces (Figure 1: green and yellow; the orange,
     finer neighbours are the same pairs seen from the finer cell). Returns the cluster id of
-    every cell (0..count-1, in order of first appearance) and the count."""
-    n = level.shape[0]
-    parent = np.arange(n)
-    chunk = 1 << 20  # rows whose neighbours are searched at once (both cores), 48 MB of them
-    for c0 in range(0, n, chunk):
-        c1 = min(n, c0 + chunk)
-        nbr = _face_neighbours(level, coords, keys, rows, off, c0, c1)
-        for r in range(c0, c1):
-            for f in range(6):
-                nb = nbr[r - c0, f]
-                if nb < 0:
-                    continue
-                a, b = _root(parent, r), _root(parent, nb)
-                if a != b:
-                    if a < b:
-                        parent[b] = a
-                    else:
-                        parent[a] = b
+    every cell (0..count-1, in order of first appearance) and the count. The cells of the
+    levels with search tables are taken in key order, a chunk at a time, so that their
+    same-level neighbours are found by merging (:func:`_level_neighbours`); the cells of the
+    coarse levels one by one."""
+    parent = np.arange(level.shape[0])
+    for lv in range(c + 1, off.shape[0] - 1):
+        for i0 in range(off[lv], off[lv + 1], UNION_CHUNK):
+            i1 = min(off[lv + 1], i0 + UNION_CHUNK)
+            _union_rows(parent, rows[i0:i1], _level_neighbours(keys, rows, off, levels, coarse, c, lv, i0, i1))
+    small = np.flatnonzero(level <= c)
+    _union_rows(parent, small, _face_neighbours(level, coords, keys, rows, off, levels, coarse, c, small))
+    return _cluster_ids(parent)
+
+
+@numba.njit(cache=True)
+def _union_rows(parent, rows, nbr):
+    """Join cell rows[i] with every neighbour nbr[i, f] >= 0 (union by smaller root)."""
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        for f in range(6):
+            nb = nbr[i, f]
+            if nb < 0:
+                continue
+            a, b = _root(parent, r), _root(parent, nb)
+            if a != b:
+                if a < b:
+                    parent[b] = a
+                else:
+                    parent[a] = b
+
+
+@numba.njit(cache=True)
+def _cluster_ids(parent):
+    n = parent.shape[0]
     ids = np.full(n, -1, np.int64)
     out = np.empty(n, np.int64)
     count = 0
@@ -219,19 +266,57 @@ def _face_union(level, coords, keys, rows, off):
 
 
 @numba.njit(cache=True, parallel=True)
-def _face_neighbours(level, coords, keys, rows, off, c0, c1):
-    """(c1 - c0, 6): the row of the same-level or coarser kept cell across each face of cells
-    c0..c1 (+x, -x, +y, -y, +z, -z), -1 where none; the searches of _face_union, both cores."""
-    nbr = np.empty((c1 - c0, 6), np.int64)
-    for i in numba.prange(c1 - c0):
-        r = c0 + i
+def _face_neighbours(level, coords, keys, rows, off, levels, coarse, c, which):
+    """(len(which), 6): the row of the same-level or coarser kept cell across each face of the
+    cells ``which`` (+x, -x, +y, -y, +z, -z), -1 where none; both cores."""
+    nbr = np.empty((which.shape[0], 6), np.int64)
+    for i in numba.prange(which.shape[0]):
+        r = which[i]
         lv = level[r]
         for f in range(6):
             d = 1 - 2 * (f & 1)
             x = coords[r, 0] + (d if f >> 1 == 0 else 0)
             y = coords[r, 1] + (d if f >> 1 == 1 else 0)
             z = coords[r, 2] + (d if f >> 1 == 2 else 0)
-            nbr[i, f] = _find_one(x, y, z, lv, keys, rows, off)
+            nbr[i, f] = _find_one(x, y, z, lv, keys, rows, off, levels, coarse, c)
+    return nbr
+
+
+@numba.njit(cache=True, parallel=True)
+def _level_neighbours(keys, rows, off, levels, coarse, c, lv, i0, i1):
+    """:func:`_face_neighbours` of the level-``lv`` cells keys[i0:i1] (a slice of that level's
+    sorted table, c < lv): moving every key one cell along an axis keeps their order, so the
+    same-level neighbours are found by a merge of the moved keys with the level's keys (a
+    pointer that only moves forward) instead of a binary search each; a face without one
+    searches the coarser levels (:func:`_find_one` from the parent). The same rows."""
+    n = i1 - i0
+    nbr = np.empty((n, 6), np.int64)
+    s, e = off[lv], off[lv + 1]
+    lim = 1 << lv
+    parts = 64
+    for part in numba.prange(parts):
+        a, b = i0 + n * part // parts, i0 + n * (part + 1) // parts
+        if a >= b:
+            continue
+        for f in range(6):
+            axis, d = f >> 1, 1 - 2 * (f & 1)
+            shift = 42 - 21 * axis
+            j = -1
+            for i in range(a, b):
+                x, y, z = (keys[i] >> 42) & _MASK, (keys[i] >> 21) & _MASK, keys[i] & _MASK
+                x, y, z = _moved(x, y, z, axis, d)
+                if min(x, min(y, z)) < 0 or max(x, max(y, z)) >= lim:
+                    nbr[i - i0, f] = -1
+                    continue
+                q = keys[i] + (d << shift)
+                if j < 0:
+                    j = _lower_bound(keys, s, e, q)
+                while j < e and keys[j] < q:
+                    j += 1
+                if j < e and keys[j] == q:
+                    nbr[i - i0, f] = rows[j]
+                else:
+                    nbr[i - i0, f] = _find_one(x >> 1, y >> 1, z >> 1, lv - 1, keys, rows, off, levels, coarse, c)
     return nbr
 
 

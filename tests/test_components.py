@@ -157,10 +157,13 @@ def test_algorithm2_coarsest_level_keeps_the_count():
     assert cc._label_map(np.array([1, 1]), np.array([3, 4])) == {1: 4}
 
 
-def test_find_and_locate_equal_a_reference_search():
-    """Octree.find / locate (compiled binary searches per level): the same rows as a reference
-    that looks the point's cell up at every level in a dict of the kept cells, for points
-    inside, outside and between kept cells and for queries at every level."""
+@pytest.mark.parametrize("coarse_level", [0, 5, 7])
+def test_find_and_locate_equal_a_reference_search(coarse_level, monkeypatch):
+    """Octree.find / locate (compiled binary searches per level finer than the dense table's
+    level, one lookup in that table for the coarser ones): the same rows as a reference that
+    looks the point's cell up at every level in a dict of the kept cells, for points inside,
+    outside and between kept cells and for queries at every level."""
+    monkeypatch.setattr(cc, "COARSE_LEVEL", coarse_level)
     # a box beside a sphere: large inside cells next to subdivided ones, levels 4 to 7
     model = node({"union": [sphere((-0.45, 0.1, 0), 0.35),
                             {"box": {"min": [0.05, -0.6, -0.5], "max": [0.8, 0.55, 0.45]}}]})
@@ -191,6 +194,33 @@ def test_find_and_locate_equal_a_reference_search():
     for level in range(tree.depth + 1):  # queries at coarser levels: the cell or a kept ancestor
         ijk = np.floor((pts - tree.origin) / tree.cell_size(level)).astype(np.int64)
         np.testing.assert_array_equal(tree.find(level, ijk), reference(pts, level))
+
+
+@pytest.mark.parametrize("coarse_level", [0, 4, 6])
+def test_merged_neighbours_equal_the_search_of_every_face(coarse_level, monkeypatch):
+    """The marking's same-level neighbours by merging a level's sorted keys (cc._level_neighbours,
+    any chunk bounds) are the rows the per-cell search finds across each face, coarser and
+    missing neighbours included; the union of them gives the same clusters."""
+    monkeypatch.setattr(cc, "COARSE_LEVEL", coarse_level)
+    model = node({"union": [sphere((-0.45, 0.1, 0), 0.35), sphere((0.5, 0.1, 0), 0.3),
+                            {"box": {"min": [0.05, -0.6, -0.5], "max": [0.8, 0.0, 0.45]}}]})
+    tree = cc.enumerate_cells(model, *cube(), 7)
+    keys, rows, off, levels, coarse, c = flat = tree.flat_tables()
+    assert c == coarse_level and np.ptp(tree.level) >= 3
+    same = coarser = missing = 0
+    for lv in range(c + 1, tree.depth + 1):
+        s, e = off[lv], off[lv + 1]
+        want = cc._face_neighbours(levels, tree.coords, *flat, rows[s:e])
+        cut = s + (e - s) // 3
+        got = np.concatenate([cc._level_neighbours(*flat, lv, s, cut), cc._level_neighbours(*flat, lv, cut, e)])
+        np.testing.assert_array_equal(got, want)
+        found = want[want >= 0]
+        same, coarser = same + (levels[found] == lv).sum(), coarser + (levels[found] < lv).sum()
+        missing += (want < 0).sum()
+    assert same > 1000 and coarser > 100 and missing > 1000
+    ids, count = cc._face_union(levels, tree.coords, *flat)
+    monkeypatch.setattr(cc, "UNION_CHUNK", 97)
+    assert count == 2 and np.array_equal(cc._face_union(levels, tree.coords, *flat)[0], ids)
 
 
 def test_solid_noise_matches_dense_label_at_the_same_tolerance():

@@ -471,21 +471,31 @@ def _children(coords: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, parallel=True)
-def _missing_edge_neighbours(coords, signs, have, limit):
+def _missing_edge_neighbours(keys, signs, have, limit):
     """Algorithm 1, continuation: for every edge whose end signs differ, the cells sharing the
-    edge that are not in ``have`` (sorted packed keys). Returns their coordinates (repeats).
-    Two parallel passes (count, then write at each cell's offset): the same rows in the same
-    order as one serial walk."""
-    n = coords.shape[0]
-    count = np.zeros(n + 1, np.int64)
+    edge that are not in ``have`` (sorted packed keys). ``keys``: the cells' packed keys,
+    sorted, ``signs`` in the same order. Returns the missing cells' coordinates (repeats).
+    The cells are taken in key order, a range per thread, with one pointer into ``have`` per
+    neighbour offset: a cell moved by a fixed offset keeps the key order, so each pointer only
+    moves forward (:func:`_gallop`). Two passes (count, then write at each range's offset)."""
+    n = keys.shape[0]
+    parts = min(n, 256)
+    count = np.zeros(parts + 1, np.int64)
     dummy = np.empty((0, 3), np.int64)
-    for r in numba.prange(n):
-        count[r + 1] = _edge_neighbours(coords, signs, have, limit, r, dummy, 0)
+    for p in numba.prange(parts):
+        ptr = np.full(27, -1, np.int64)
+        c = 0
+        for i in range(n * p // parts, n * (p + 1) // parts):
+            c += _edge_neighbours(keys, signs, have, limit, i, ptr, dummy, 0)
+        count[p + 1] = c
     start = np.cumsum(count)
-    out = np.empty((start[n], 3), np.int64)
-    for r in numba.prange(n):
-        if start[r + 1] > start[r]:
-            _edge_neighbours(coords, signs, have, limit, r, out, start[r])
+    out = np.empty((start[parts], 3), np.int64)
+    for p in numba.prange(parts):
+        if start[p + 1] > start[p]:
+            ptr = np.full(27, -1, np.int64)
+            at = start[p]
+            for i in range(n * p // parts, n * (p + 1) // parts):
+                at += _edge_neighbours(keys, signs, have, limit, i, ptr, out, at)
     return out
 
 
@@ -495,16 +505,32 @@ def _moved(q0, q1, q2, axis, d):
     return q0 + d * (axis == 0), q1 + d * (axis == 1), q2 + d * (axis == 2)
 
 
+@numba.njit(cache=True, inline="always")
+def _gallop(keys, j, hi, q):
+    """First index >= j in the sorted keys[:hi] whose key is not below q (hi when none): steps
+    of 1, 2, 4, ... from j, then a binary search in the last step (cost log of the distance)."""
+    step = 1
+    lo = j
+    while j < hi and keys[j] < q:
+        lo = j + 1
+        j += step
+        step <<= 1
+    return _lower_bound(keys, lo, min(j, hi), q)
+
+
 @numba.njit(cache=True)
-def _edge_neighbours(coords, signs, have, limit, r, out, at):
-    """The missing edge neighbours of cell r, written to out[at:] when out has rows; their count."""
+def _edge_neighbours(keys, signs, have, limit, i, ptr, out, at):
+    """The missing edge neighbours of the cell keys[i], written to out[at:] when out has rows;
+    their count. ``ptr``: per neighbour offset, the position in ``have`` of the previous query
+    (-1: none yet); the queries of one offset must come in increasing key order."""
     found = 0
+    x, y, z = (keys[i] >> 42) & _MASK, (keys[i] >> 21) & _MASK, keys[i] & _MASK
     for a in range(8):
         for axis in range(3):
             bit = 4 >> axis
             if a & bit:
                 continue
-            if ((signs[r] >> a) & 1) == ((signs[r] >> (a | bit)) & 1):
+            if ((signs[i] >> a) & 1) == ((signs[i] >> (a | bit)) & 1):
                 continue
             u = (axis + 1) % 3
             v = (axis + 2) % 3
@@ -514,11 +540,16 @@ def _edge_neighbours(coords, signs, have, limit, r, out, at):
                 for dv in range(2):
                     if du == 0 and dv == 0:
                         continue
-                    q0, q1, q2 = _moved(coords[r, 0], coords[r, 1], coords[r, 2], u, su * du)
+                    q0, q1, q2 = _moved(x, y, z, u, su * du)
                     q0, q1, q2 = _moved(q0, q1, q2, v, sv * dv)
                     if min(q0, min(q1, q2)) < 0 or max(q0, max(q1, q2)) >= limit:
                         continue  # only the moved coordinates can leave the lattice
-                    if _bsearch(have, 0, have.shape[0], (q0 << 42) | (q1 << 21) | q2) >= 0:
+                    q = (q0 << 42) | (q1 << 21) | q2
+                    o = (q0 - x + 1) * 9 + (q1 - y + 1) * 3 + (q2 - z + 1)
+                    j = ptr[o]
+                    j = _lower_bound(have, 0, have.shape[0], q) if j < 0 else _gallop(have, j, have.shape[0], q)
+                    ptr[o] = j
+                    if j < have.shape[0] and have[j] == q:
                         continue
                     if out.shape[0]:
                         out[at + found, 0], out[at + found, 1], out[at + found, 2] = q0, q1, q2
@@ -651,11 +682,13 @@ def _continuation(cells, signs, cache, depth, origin, size, region, st, brick=No
     cells that share the edge, until no new cell appears (they hold a zero of f on that edge).
     ``have``: sorted packed keys already enumerated (default: ``cells``). With ``brick`` the
     walk stays inside it and the cells it would enter outside are returned as escaped."""
-    have = np.sort(pack(cells)) if have is None else have
-    frontier_c, frontier_s = cells, signs
+    keys = pack(cells)
+    order = np.argsort(keys)
+    frontier_k, frontier_s = keys[order], signs[order]
+    have = frontier_k if have is None else have
     added_c, added_s, escaped = [cells], [signs], [np.zeros((0, 3), np.int64)]
-    while len(frontier_c):
-        nb = _unique_rows(_missing_edge_neighbours(frontier_c, frontier_s, have, 1 << depth))
+    while len(frontier_k):
+        nb = _unique_rows(_missing_edge_neighbours(frontier_k, frontier_s, have, 1 << depth))
         new = nb[_in_region(nb, depth, origin, size, *region)]
         if brick is not None:
             inner = _meets(new, depth, depth, brick)
@@ -665,10 +698,11 @@ def _continuation(cells, signs, cache, depth, origin, size, region, st, brick=No
             break
         ns = _corner_signs(cache, new, 1)
         st["continuation_cells"] += len(new)
-        have = np.sort(np.concatenate([have, pack(new)]))
+        frontier_k = pack(new)  # sorted: _unique_rows orders by key
+        have = np.sort(np.concatenate([have, frontier_k]))
         added_c.append(new)
         added_s.append(ns)
-        frontier_c, frontier_s = new, ns
+        frontier_s = ns
     return np.concatenate(added_c), np.concatenate(added_s), _unique_rows(np.concatenate(escaped))
 
 

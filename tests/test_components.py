@@ -99,11 +99,43 @@ def test_continuation_recovers_cells_the_descent_did_not_reach():
     signs = cc._sign_bits(np.array([[1.0, -1, -1, -1, -1, -1, -1, -1]]) > 0)  # only corner 0's edges change sign
     assert signs.tolist() == [1]
     have = np.sort(cc.pack(np.array([[5, 5, 5]])))
-    nb = cc._unique_rows(cc._missing_edge_neighbours(np.array([[5, 5, 5]]), signs, have, 64))
+    nb = cc._unique_rows(cc._missing_edge_neighbours(have, signs, have, 64))
     assert {tuple(r) for r in nb} == {(4, 4, 5), (4, 5, 4), (4, 5, 5), (5, 4, 4), (5, 4, 5), (5, 5, 4)}
     # an unclipped descent reaches every cell across a sign-changing edge itself
     full = cc.enumerate_cells(model, *cube(), 6)
     assert full.stats["continuation_cells"] == 0 and full.stats["border_cells"] > 0
+
+
+@FAST
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 3000), extra=st.integers(0, 3000))
+def test_missing_edge_neighbours_equal_a_set_reference(seed, n, extra):
+    """The continuation's search (cells in key order, a forward pointer per neighbour offset)
+    finds the same missing cells, with the same repeats, as a set lookup of every neighbour
+    across every sign-changing edge."""
+    rng = np.random.default_rng(seed)
+    lim = 24
+    cells = cc._unique_rows(rng.integers(0, lim, (n, 3)))
+    keys = cc.pack(cells)  # sorted by _unique_rows
+    signs = rng.integers(0, 256, len(cells)).astype(np.uint8)
+    have = np.unique(np.concatenate([keys, cc.pack(rng.integers(0, lim, (extra, 3)))]))
+    got = cc._missing_edge_neighbours(keys, signs, have, lim)
+    present = set(have.tolist())
+    want = []
+    for (x, y, z), b in zip(cells.tolist(), signs.tolist(), strict=True):
+        for a in range(8):
+            for axis in range(3):
+                bit = 4 >> axis
+                if a & bit or ((b >> a) & 1) == ((b >> (a | bit)) & 1):
+                    continue
+                u, v = (axis + 1) % 3, (axis + 2) % 3
+                for du, dv in ((1, 0), (0, 1), (1, 1)):
+                    q = [x, y, z]
+                    q[u] += du * (1 if a & (4 >> u) else -1)
+                    q[v] += dv * (1 if a & (4 >> v) else -1)
+                    if min(q) >= 0 and max(q) < lim and int(cc.pack(np.array([q]))[0]) not in present:
+                        want.append(q)
+    want = np.array(want, np.int64).reshape(-1, 3)
+    assert np.array_equal(got[np.lexsort(got.T[::-1])], want[np.lexsort(want.T[::-1])])
 
 
 @FAST

@@ -98,3 +98,32 @@ def test_shared_open_cube_warns() -> None:
     _, rep = load_mesh(path)
     assert not rep.watertight
     assert any("not closed" in w for w in rep.warnings)
+
+
+def test_plain_off_parse_is_trimeshs(tmp_path: Path) -> None:
+    """meshio._plain_off (the bulk parser of plain triangle OFF files) gives trimesh's vertices and
+    faces, blank lines and CRLF included; comments, polygons and bad indices go to trimesh."""
+    import io
+
+    import numpy as np
+
+    from pipeline.meshio import _plain_off
+
+    torus = trimesh.creation.torus(1.0, 0.3)
+    text = trimesh.exchange.off.export_off(torus)
+    lines = text.splitlines()
+    variants = [text, "\r\n".join(lines), "\n\n".join(lines[:2]) + "\n\n" + "\n".join(lines[2:]) + "\n\n"]
+    for v in variants:
+        data = v.encode()
+        ref = trimesh.load(io.BytesIO(data), file_type="off", force="mesh", process=False)
+        got = _plain_off(data)
+        assert got is not None
+        np.testing.assert_array_equal(got[0], ref.vertices)
+        np.testing.assert_array_equal(got[1], ref.faces)
+    quad = "OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n"
+    for other in ("# c\n" + text, quad, text.replace("\n3 0 ", "\n3 99999 ", 1)):
+        assert _plain_off(other.encode()) is None
+    path = tmp_path / "quad.off"
+    path.write_text(quad)
+    mesh, _ = load_mesh(path)
+    assert len(mesh.faces) == 2

@@ -466,8 +466,21 @@ def _unique_rows(a: np.ndarray) -> np.ndarray:
     return unpack(np.unique(pack(a))) if len(a) else a.reshape(0, 3)
 
 
-def _children(coords: np.ndarray) -> np.ndarray:
-    return (2 * coords[:, None, :] + _CORNERS[None]).reshape(-1, 3)
+def _children(coords: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
+    """The 8 children of each cell (of the cells where ``which`` is set), corner order."""
+    coords = np.ascontiguousarray(coords, dtype=np.int64)
+    rows = np.arange(len(coords)) if which is None else np.flatnonzero(which)
+    return _child_coords(coords, rows, _CORNERS)
+
+
+@numba.njit(cache=True, parallel=True)
+def _child_coords(coords, rows, corners):
+    out = np.empty((rows.shape[0] * 8, 3), np.int64)
+    for i in numba.prange(rows.shape[0]):
+        for c in range(8):
+            for a in range(3):
+                out[8 * i + c, a] = 2 * coords[rows[i], a] + corners[c, a]
+    return out
 
 
 @numba.njit(cache=True, parallel=True)
@@ -613,7 +626,7 @@ def enumerate_in_brick(model: Node, origin, size: float, depth: int, t: float = 
                              "subdivided": int(split.sum())})
         if continuation and lv < depth:
             signs = _child_corner_signs(cache, cells[split], signs[split], 1 << (depth - lv - 1))
-        cells = _children(cells[split])
+        cells = _children(cells, split)
     st["corner_evaluations"] = cache.evaluations
     st["seconds"] = round(time.perf_counter() - t0, 4)
     tree = Octree(origin, float(size), depth, _cat(kept_l, (0,), np.int64), _cat(kept_c, (0, 3), np.int64),
@@ -630,7 +643,7 @@ def _meets(coords: np.ndarray, level: int, depth: int, brick) -> np.ndarray:
 
 
 def _cat(parts: list, shape: tuple, dtype) -> np.ndarray:
-    return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
+    return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(shape, dtype)
 
 
 def _classify(model, cells, signs, lv, origin, size, t, st) -> tuple[np.ndarray, np.ndarray]:
@@ -898,10 +911,30 @@ def _paint_cells(bkeys, level, coords, labels, depth, imin, lab, fine, mark_fine
 def _nearest_fine(active, lab, fine, nbr27, offsets):
     """Active voxels outside every kept cell take the label of the nearest finest-cell voxel
     (``offsets`` sorted by length, all shorter than a block: the first hit is the nearest).
-    Returns the labels and a mask of the voxels with no hit within the offsets."""
+    Returns the labels and a mask of the voxels with no hit within the offsets. Each block
+    that has such voxels first copies the finest-cell labels of its 27 neighbours within
+    reach into a window (-1: not a finest cell, or no block), so that each offset costs one
+    read instead of a block lookup."""
     out = lab.copy()
     miss = np.zeros(active.shape, np.bool_)
+    r = _NEAR_R
+    w = 8 + 2 * r
     for b in numba.prange(active.shape[0]):
+        todo = False
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if active[b, i, j, k] and lab[b, i, j, k] == 0:
+                        todo = True
+        if not todo:
+            continue
+        win = np.full((w, w, w), -1, np.int64)
+        for x in range(-r, 8 + r):
+            for y in range(-r, 8 + r):
+                for z in range(-r, 8 + r):
+                    n = nbr27[b, ((x >> 3) + 1) * 9 + ((y >> 3) + 1) * 3 + (z >> 3) + 1]
+                    if n >= 0 and fine[n, x & 7, y & 7, z & 7]:
+                        win[x + r, y + r, z + r] = lab[n, x & 7, y & 7, z & 7]
         for i in range(8):
             for j in range(8):
                 for k in range(8):
@@ -909,14 +942,9 @@ def _nearest_fine(active, lab, fine, nbr27, offsets):
                         continue
                     hit = False
                     for m in range(offsets.shape[0]):
-                        x, y, z = i + offsets[m, 0], j + offsets[m, 1], k + offsets[m, 2]
-                        dx, dy, dz = (x >> 3) + 1, (y >> 3) + 1, (z >> 3) + 1  # -1, 0, 1 -> 0..2
-                        n = nbr27[b, dx * 9 + dy * 3 + dz]
-                        if n < 0:
-                            continue
-                        x, y, z = x & 7, y & 7, z & 7
-                        if fine[n, x, y, z]:
-                            out[b, i, j, k] = lab[n, x, y, z]
+                        v = win[i + offsets[m, 0] + r, j + offsets[m, 1] + r, k + offsets[m, 2] + r]
+                        if v >= 0:
+                            out[b, i, j, k] = v
                             hit = True
                             break
                     if not hit:

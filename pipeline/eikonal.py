@@ -43,6 +43,7 @@ import numpy as np
 from numba import njit, prange
 from scipy import ndimage
 
+from pipeline.blockwrite import mapped_empty, release_rows
 from pipeline.eikonal_bricks import BrickedFIM
 from pipeline.fim import EXCLUDED, FREE, FROZEN, block_colour, fim, init_interface
 from pipeline.grid import LEAF, BlockGrid, linear_transform, pack_keys, vdb
@@ -430,10 +431,11 @@ def solve_distance(
     grid, sign, brow = _assemble(band, band_sign, block_sign, keep, lat_lo)
     del band_sign, band_mask, band_row, block_sign, keep
     _flood_sign(sign, block_neighbours(grid))
-    inside = sign > 0
+    inside = mapped_empty(sign.shape, bool)  # compacted in place to the kept blocks after the solve
+    np.greater(sign, 0, out=inside)
     del sign
     state = _excluded_state(grid.origins, lo, hi)
-    d = np.empty(inside.shape)
+    d = mapped_empty(inside.shape, np.float64)  # its pages go back to the OS while the output is made
     _fill_inf(d)  # first touch of the pages on every thread
     nbr27 = block_neighbours27(grid)
     # frep is read in its own blocks through brow (no copy of it in the working layout)
@@ -458,20 +460,29 @@ def solve_distance(
         has_band = np.zeros(len(d), bool)  # rows of band blocks with an active voxel
         has_band[brow >= 0] = band.active.reshape(len(band.active), -1).any(axis=1)[brow[brow >= 0]]
         rows, coarse_inside, n_dropped = _drop_unsolved(d, inside, origins, has_band, coarse_inside)
-        origins, inside, state = origins[rows], inside[rows], state[rows]
+        if len(rows) < len(inside):  # rows ascend: in place, then the tail goes back to the OS
+            _compact(inside, rows)
+            release_rows(inside, len(inside), len(rows))
+            inside = inside[:len(rows)]
+        origins = origins[rows]
     del grid, brow  # free the working copies before the output is made
     bg = float(max_distance) if max_distance is not None else h * _finite_max(d)
     if rows is None:
         rows = np.arange(len(d))
-    values = np.empty((len(rows), LEAF, LEAF, LEAF), np.float32)
-    solved = np.empty(values.shape, bool)
-    _finish(d, rows, h, bg, values, solved)  # one pass: at 1024^3 every full-size temporary costs gigabytes
+    # the output on mappings the stage can release as it writes the grids (blockwrite.release_rows)
+    values = mapped_empty((len(rows), LEAF, LEAF, LEAF), np.float32)
+    solved = mapped_empty(values.shape, bool)
+    # in chunks, each followed by the release of the distance blocks no later chunk reads (rows
+    # ascend): the float32 output replaces the float64 working array instead of adding to it
+    for a in range(0, len(rows), FINISH_CHUNK):
+        b = min(a + FINISH_CHUNK, len(rows))
+        _finish(d, rows[a:b], h, bg, values[a:b], solved[a:b])
+        release_rows(d, int(rows[b]) if b < len(rows) else len(d))
     del d
-    if deep is not None:
-        left = inside & ~solved & (state != EXCLUDED)
-        deep_rows = np.flatnonzero(left.reshape(len(left), -1).any(axis=1))
-        deep_mask = left[deep_rows]
-        del left
+    if deep is not None:  # inside, unsolved, in the domain: one pass, no full-size temporaries
+        deep_rows = np.flatnonzero(_any_left(inside, solved, state, rows))  # state is not compacted
+        deep_mask = np.empty((len(deep_rows), LEAF, LEAF, LEAF), bool)
+        _left(inside, solved, state, rows, deep_rows, deep_mask)
     del state
     dist = BlockGrid(h, bg, origins, values, solved)
     stats = {
@@ -493,6 +504,9 @@ def solve_distance(
         stats["deep_voxels_in_fine_blocks"] = int(deep_mask.sum())
     return EikonalResult(dist, inside, None if max_distance is None else float(max_distance), stats,
                          coarse_inside, deep_rows, deep_mask)
+
+
+FINISH_CHUNK = 16384  # blocks per chunk of the output pass (64 MiB of the float64 distance)
 
 
 def _drop_unsolved(d, inside, origins, has_band, coarse_inside):
@@ -525,6 +539,41 @@ def _any_finite(d):
             if out[b]:
                 break
     return out
+
+
+@njit(cache=True, parallel=True)
+def _any_left(inside, solved, state, srows):
+    """Per block b: does it hold an inside voxel left unsolved in the domain (state of block b
+    is row ``srows[b]`` of ``state``)."""
+    out = np.zeros(inside.shape[0], np.bool_)
+    for b in prange(inside.shape[0]):
+        s = srows[b]
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if inside[b, i, j, k] and not solved[b, i, j, k] and state[s, i, j, k] != EXCLUDED:
+                        out[b] = True
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _left(inside, solved, state, srows, rows, out):
+    """out[t] = inside & ~solved & (state != EXCLUDED) of block rows[t] (its state: row srows[rows[t]])."""
+    for t in prange(rows.shape[0]):
+        b = rows[t]
+        s = srows[b]
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    out[t, i, j, k] = inside[b, i, j, k] and not solved[b, i, j, k] and state[s, i, j, k] != EXCLUDED
+
+
+@njit(cache=True)
+def _compact(arr, rows):
+    """arr[t] = arr[rows[t]] for ascending rows (rows[t] >= t: in place, serially)."""
+    for t in range(rows.shape[0]):
+        if rows[t] != t:
+            arr[t] = arr[rows[t]]
 
 
 @njit(cache=True, parallel=True)
@@ -729,9 +778,12 @@ def _band_values(values, active, inside, rows, bg, out_v, out_a):
                     out_v[t, i, j, k] = -v if inside[b, i, j, k] else v
 
 
-def surface_grid(result: EikonalResult, band: float, name: str = "surface", full: bool = False):
+def surface_grid(result: EikonalResult, band: float, name: str = "surface", full: bool = False,
+                 consume: bool = False):
     """pyopenvdb ``FloatGrid`` of :func:`surface_blocks`, class LEVEL_SET, sign flood-filled.
-    The narrow band is written a batch of blocks at a time (never held whole)."""
+    The narrow band is written a batch of blocks at a time (never held whole). ``consume``
+    (narrow band only): the distance and side arrays of ``result`` are released as the band is
+    written (``result`` is not to be read afterwards: the last use of a solve)."""
     from pipeline.blockwrite import write_batched, write_leaves
 
     bg = float(band) * result.distance.voxel_size
@@ -748,7 +800,12 @@ def surface_grid(result: EikonalResult, band: float, name: str = "surface", full
 
         def fill(lo, hi, values, active):
             _band_values(dist.values, dist.active, result.inside, rows[lo:hi], bg32, values, active)
-        write_batched(grid, dist.origins[rows], fill)
+
+        def done(hi):  # no later batch reads the blocks before the next band block
+            upto = int(rows[hi]) if hi < len(rows) else len(dist.values)
+            for arr in (dist.values, dist.active, result.inside):
+                release_rows(arr, upto)
+        write_batched(grid, dist.origins[rows], fill, done=done if consume else None)
     grid.signedFloodFill()
     grid.prune()
     return grid

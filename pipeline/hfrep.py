@@ -29,7 +29,7 @@ import numpy as np
 from numba import njit, prange
 from scipy.special import expit
 
-from pipeline.blockwrite import write_batched, write_leaves
+from pipeline.blockwrite import mapped_empty, write_batched, write_leaves
 from pipeline.eikonal import EikonalResult
 from pipeline.grid import LEAF, BlockGrid, linear_transform, negate_active, vdb
 from pipeline.spline import TricubicSpline
@@ -85,10 +85,13 @@ def hfrep_blocks(
         for a in range(0, len(table), 8192):
             act = frep.active[a:a + 8192]
             table[a:a + 8192][act] = step_function(frep.values[a:a + 8192][act], step, slope)
-    values = np.empty(dist.values.shape, np.float32)  # float32 throughout: this grid covers the whole interior
+    # float32 throughout (this grid covers the whole interior), on mappings hfrep_grid can release
+    values = mapped_empty(dist.values.shape, np.float32)
     _hfrep_values(dist.values, dist.active, result.inside, rows, frep.values, frep.active, table,
                   STEPS.index(step), float(slope), np.float32(-dist.background), values)
-    return BlockGrid(dist.voxel_size, -float(dist.background), dist.origins, values, dist.active.copy())
+    active = mapped_empty(dist.active.shape, bool)
+    np.copyto(active, dist.active)
+    return BlockGrid(dist.voxel_size, -float(dist.background), dist.origins, values, active)
 
 
 @njit(cache=True, parallel=True)
@@ -117,15 +120,16 @@ def _hfrep_values(dist, active, inside, rows, f, fact, table, mode, slope, outsi
                     out[b, i, j, k] = s * dist[b, i, j, k]
 
 
-def hfrep_grid(hf: BlockGrid, name: str = "hfrep"):
+def hfrep_grid(hf: BlockGrid, name: str = "hfrep", consume: bool = False):
     """The ``hfrep`` FloatGrid of :func:`hfrep_blocks`' blocks: what ``pipeline.grid.frep_to_vdb``
     makes of them without boxes (its steps: write the level-set-signed values, sign flood
-    fill, negate the active values, swap the background to -bg), written a batch at a time."""
+    fill, negate the active values, swap the background to -bg), written a batch at a time.
+    ``consume``: the blocks are released as they are written (not to be read afterwards)."""
     bg = abs(float(hf.background))
     grid = vdb.FloatGrid(bg)
     grid.name = name
     grid.transform = linear_transform(hf.voxel_size)
-    write_leaves(grid, hf, scale=-1.0)
+    write_leaves(grid, hf, scale=-1.0, consume=consume)
     grid.signedFloodFill()
     negate_active(grid)
     grid.background = -bg  # swaps +bg <-> -bg on inactive values and tiles

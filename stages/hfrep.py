@@ -110,7 +110,7 @@ def run(ctx, p: Params) -> dict:
         fill_deep(hf, res, tiles[2])  # the fine blocks' inside voxels beyond the fine solve's limit
     # build the grids one at a time and drop each working copy: at 1024^3 the interior
     # distance is hundreds of millions of voxels
-    hgrid = hfrep_grid(hf)  # frep_to_vdb's grid for these blocks
+    hgrid = hfrep_grid(hf, consume=True)  # frep_to_vdb's grid for these blocks, released as written
     hgrid.updateMetadata({**meta, "step": p.step, "slope": p.slope})
     del hf
     if tiles is not None:
@@ -128,7 +128,7 @@ def run(ctx, p: Params) -> dict:
         surface = hierarchical_grid(hres, "surface", background=band * h)  # SPEC: background = band * h
         stats["hfim"] = {k: v for k, v in hres.stats.items() if k != "fine"}
     else:
-        surface = surface_grid(res, band, full=p.surface == "full")
+        surface = surface_grid(res, band, full=p.surface == "full", consume=True)  # the last use of res
     surface.updateMetadata(meta)
     ctx.grids["surface"], ctx.grids["hfrep"] = surface, hgrid
     return stats

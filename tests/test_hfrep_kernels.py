@@ -114,3 +114,36 @@ def test_batched_writer_builds_the_same_grid() -> None:
     (a0, m0, n0, v0), (a1, m1, n1, v1) = grids
     assert np.array_equal(a0, a1) and np.array_equal(m0, m1) and (n0, v0) == (n1, v1) == (len(frep.origins),
                                                                                       frep.active_count)
+
+
+def test_release_rows_frees_whole_pages_of_the_given_rows_only() -> None:
+    from pipeline.blockwrite import mapped_empty, release_rows
+
+    a = mapped_empty((100, 8, 8, 8), np.float32)  # 2 KiB rows: two to a 4 KiB page
+    a[:] = 1.0
+    release_rows(a, 50, 3)  # rows 3..49: the page holding rows 2-3 stays
+    assert (a[4:50] == 0).all() and (a[:4] == 1).all() and (a[50:] == 1).all()
+    b = np.ones((10, 8, 8, 8), np.float32)
+    release_rows(b, 10)  # not a mapping: left alone
+    assert (b == 1).all()
+
+
+def test_surface_grid_consuming_the_solve_writes_the_same_grid(sph, monkeypatch) -> None:
+    from pipeline import blockwrite
+    from pipeline.blockwrite import mapped_empty
+    from pipeline.eikonal import EikonalResult, surface_grid
+    from pipeline.grid import BlockGrid
+
+    _, res = sph
+    monkeypatch.setattr(blockwrite, "BATCH", 7)  # many batches, each releasing the blocks before the next
+    grids = []
+    for consume in (False, True):
+        d = res.distance
+        copy = [mapped_empty(x.shape, x.dtype) for x in (d.values, d.active, res.inside)]
+        for c, x in zip(copy, (d.values, d.active, res.inside), strict=True):
+            c[:] = x
+        r = EikonalResult(BlockGrid(d.voxel_size, d.background, d.origins, copy[0], copy[1]), copy[2], res.max_distance)
+        g = surface_grid(r, 3.0, consume=consume)
+        grids.append((g.activeVoxelCount(), g.leafCount(), g.evalMinMax(), copy))
+    assert grids[0][:3] == grids[1][:3] and grids[0][0] > 5000
+    assert (grids[0][3][0] == res.distance.values).all() and not (grids[1][3][0] == res.distance.values).all()

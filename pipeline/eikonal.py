@@ -78,20 +78,44 @@ class EikonalResult:
 # --- block topology ---------------------------------------------------------------------
 def block_neighbours(grid: BlockGrid) -> np.ndarray:
     """(L,6) rows of the face neighbours (-x,+x,-y,+y,-z,+z) of every block, -1 if absent."""
-    nbr = np.empty((len(grid.origins), 6), dtype=np.int64)
-    for f, step in enumerate(_FACE_DIRS):
-        nbr[:, f] = grid.block_index(grid.origins + LEAF * step)
-    return nbr
+    return _neighbour_rows(grid, _FACE_DIRS)
+
+
+_OFFS27 = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
 
 
 def block_neighbours27(grid: BlockGrid) -> np.ndarray:
     """(L,27) blocks at every offset (-1..1)^3, row (dx+1)*9 + (dy+1)*3 + (dz+1); -1 if absent."""
-    r = np.arange(-1, 2)
-    offs = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
-    nbr = np.empty((len(grid.origins), 27), dtype=np.int64)
-    for f, step in enumerate(offs):
-        nbr[:, f] = grid.block_index(grid.origins + LEAF * step)
-    return nbr
+    return _neighbour_rows(grid, _OFFS27)
+
+
+def _neighbour_rows(grid: BlockGrid, offsets: np.ndarray) -> np.ndarray:
+    """Row of the block at each offset (in blocks) from every block, -1 where absent: looked up
+    in a dense int32 lattice of rows when that costs at most 16 entries per block (a parallel
+    pass), else by ``grid.block_index`` (binary searches)."""
+    n = len(grid.origins)
+    out = np.empty((n, len(offsets)), dtype=np.int64)
+    if n == 0:
+        return out
+    p = grid.origins >> 3
+    lo = p.min(axis=0) - 1
+    dims = p.max(axis=0) - lo + 2
+    if int(np.prod(dims)) > 16 * n + (1 << 20) or n >= 2**31:
+        for f, step in enumerate(offsets):
+            out[:, f] = grid.block_index(grid.origins + LEAF * step)
+        return out
+    table = np.full(tuple(int(x) for x in dims), -1, dtype=np.int32)
+    q = p - lo
+    table[q[:, 0], q[:, 1], q[:, 2]] = np.arange(n, dtype=np.int32)
+    _lookup_rows(table, q, np.ascontiguousarray(offsets, dtype=np.int64), out)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _lookup_rows(table, q, offsets, out):
+    for b in prange(q.shape[0]):
+        for f in range(offsets.shape[0]):
+            out[b, f] = table[q[b, 0] + offsets[f, 0], q[b, 1] + offsets[f, 1], q[b, 2] + offsets[f, 2]]
 
 
 # --- Numba kernels ----------------------------------------------------------------------
@@ -318,31 +342,38 @@ def _far_blocks(band: BlockGrid, band_sign, band_row, block_sign, candidates, li
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _interface_boxes(f, fact, sign, nbr, ilo, ihi):
-    """Per band block: box (local, inclusive; empty lo > hi) of its interface voxels."""
-    for b in range(sign.shape[0]):
-        for a in range(3):
-            ilo[b, a] = LEAF
-            ihi[b, a] = -1
-        for i in range(8):
-            for j in range(8):
-                for k in range(8):
-                    s = sign[b, i, j, k]
-                    if s == 0:
-                        continue
-                    hit = fact[b, i, j, k] and f[b, i, j, k] == 0.0
-                    if not hit:
-                        for q in range(6):
-                            di, dj, dk = _dir(q)
-                            ni, nj, nk, n = _step(nbr, b, i + di, j + dj, k + dk)
-                            if n >= 0 and sign[n, ni, nj, nk] == -s:
-                                hit = True
-                                break
-                    if hit:
-                        ilo[b, 0], ihi[b, 0] = min(ilo[b, 0], i), max(ihi[b, 0], i)
-                        ilo[b, 1], ihi[b, 1] = min(ilo[b, 1], j), max(ihi[b, 1], j)
-                        ilo[b, 2], ihi[b, 2] = min(ilo[b, 2], k), max(ihi[b, 2], k)
+    """Per band block: box (local, inclusive; empty lo > hi) of its interface voxels (each block
+    writes only its own rows: in parallel)."""
+    for b in prange(sign.shape[0]):
+        _interface_box(f, fact, sign, nbr, np.int64(b), ilo, ihi)  # prange index may be unsigned
+
+
+@njit(cache=True)
+def _interface_box(f, fact, sign, nbr, b, ilo, ihi):
+    """Block b's box of interface voxels (see :func:`_interface_boxes`)."""
+    for a in range(3):
+        ilo[b, a] = LEAF
+        ihi[b, a] = -1
+    for i in range(8):
+        for j in range(8):
+            for k in range(8):
+                s = sign[b, i, j, k]
+                if s == 0:
+                    continue
+                hit = fact[b, i, j, k] and f[b, i, j, k] == 0.0
+                if not hit:
+                    for q in range(6):
+                        di, dj, dk = _dir(q)
+                        ni, nj, nk, n = _step(nbr, b, i + di, j + dj, k + dk)
+                        if n >= 0 and sign[n, ni, nj, nk] == -s:
+                            hit = True
+                            break
+                if hit:
+                    ilo[b, 0], ihi[b, 0] = min(ilo[b, 0], i), max(ihi[b, 0], i)
+                    ilo[b, 1], ihi[b, 1] = min(ilo[b, 1], j), max(ihi[b, 1], j)
+                    ilo[b, 2], ihi[b, 2] = min(ilo[b, 2], k), max(ihi[b, 2], k)
 
 
 @njit(cache=True, parallel=True)

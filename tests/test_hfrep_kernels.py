@@ -147,3 +147,20 @@ def test_surface_grid_consuming_the_solve_writes_the_same_grid(sph, monkeypatch)
         grids.append((g.activeVoxelCount(), g.leafCount(), g.evalMinMax(), copy))
     assert grids[0][:3] == grids[1][:3] and grids[0][0] > 5000
     assert (grids[0][3][0] == res.distance.values).all() and not (grids[1][3][0] == res.distance.values).all()
+
+
+@pytest.mark.parametrize("keep, far", [(1.0, 0), (0.3, 0), (0.3, 100_000)])
+def test_neighbour_tables_equal_the_searches(keep: float, far: int) -> None:
+    """eikonal.block_neighbours / block_neighbours27 (a dense lattice of rows where it is small,
+    binary searches where it is not) against grid.block_index at every offset."""
+    from pipeline.eikonal import _FACE_DIRS, _OFFS27, block_neighbours, block_neighbours27
+    from pipeline.grid import BlockGrid
+
+    rng = np.random.default_rng(3)
+    p = np.stack(np.meshgrid(*[np.arange(-6, 7)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    p = p[rng.random(len(p)) < keep]
+    p[:, 2] += far * (p[:, 0] > 0)  # far: a lattice too large to hold densely (the searches)
+    grid = BlockGrid(1.0, 1.0, p * 8, np.zeros((len(p), 8, 8, 8), np.float32), np.zeros((len(p), 8, 8, 8), bool))
+    for table, offs in ((block_neighbours(grid), _FACE_DIRS), (block_neighbours27(grid), _OFFS27)):
+        want = np.stack([grid.block_index(grid.origins + 8 * o) for o in offs], axis=1)
+        assert np.array_equal(table, want) and (want >= 0).any()

@@ -16,8 +16,16 @@ test: setup
 lint: setup
 	$(PY) -m ruff check pipeline stages tests bench frepvdb
 
-bench: setup
+bench: setup bench-tools
 	$(PY) bench/voxelise.py
+
+# The anchors of bench/mesh.py and bench/voxelise.py: OpenVDB's vdb_tool (mesh2ls) from apt.
+.PHONY: bench-tools
+bench-tools:
+	@command -v vdb_tool >/dev/null 2>&1 || { \
+	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO="sudo"; \
+	  echo "bench-tools: apt-get install -y libopenvdb-tools"; \
+	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libopenvdb-tools; }
 
 clean:
 	rm -rf $(OUT)/*/ .pytest_cache

@@ -432,3 +432,19 @@ def test_closed_mesh_cells_are_culled_by_the_surface(tmp_path) -> None:
     opened = trimesh.Trimesh(mesh.vertices, mesh.faces[1:], process=False)
     assert BSPField.from_mesh(opened, rfunc="min_max").surface is None
     assert BSPField.from_mesh(mesh, rfunc="min_max").surface is not None
+
+
+@pytest.mark.parametrize("band", [1, 3])
+def test_surface_culled_mesh_in_csg_written_everywhere(tmp_path, band) -> None:
+    """A closed min_max mesh in CSG with primitives (cells where only the mesh is left are culled
+    by its surface, the others by interval walks): every voxel of the written grid has the
+    model's sign and the band is closed, at band 1 and 3."""
+    from tests.test_written_grids import _box_with_holes, check_frep_everywhere
+
+    path = tmp_path / "holes.off"
+    _box_with_holes().apply_scale(0.8).export(str(path))
+    model = (f"difference: {{of: [{{union: {{of: [{{mesh: {{path: {path}, rfunc: min_max}}}}, "
+             f"{{sphere: {{center: [0.6, 0.5, 0.4], radius: 0.3}}}}], rfunc: min_max}}}}, "
+             f"{{cylinder: {{center: [-0.4, 0, 0], radius: 0.12, axis: z}}}}], rfunc: min_max}}")
+    r = check_frep_everywhere(tmp_path, frep_config(model, res=36, band=band))
+    assert r["active"] > 0 and r["unclosed"] == 0 and r["wrong"] == 0

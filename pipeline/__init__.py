@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 
 #: modules whose compiled functions are called by compiled functions of other modules
-KERNEL_PROVIDERS = ("bsp_minmax.py", "fim.py", "eikonal.py", "bsp_build.py")
+KERNEL_PROVIDERS = ("bsp_minmax.py", "fim.py", "eikonal.py", "bsp_build.py", "rkernels.py")
 
 
 def _numba_cache_dir() -> None:

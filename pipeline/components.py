@@ -29,7 +29,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.tape import _r0and
+from pipeline.rkernels import r0_and
 
 if TYPE_CHECKING:
     from pipeline.nodes.base import Node
@@ -1184,7 +1184,7 @@ def _separated_piece(rows, origins, active, labels, piece, values, inside, h, bl
                         if d < best:
                             best = d
                     g = best if inside[r, i, j, k] else -best
-                    out[r, i, j, k] = np.float32(_r0and(np.float64(values[b, i, j, k]), g))
+                    out[r, i, j, k] = np.float32(r0_and(np.float64(values[b, i, j, k]), g))
                     act[r, i, j, k] = True
     return out, act
 

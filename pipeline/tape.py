@@ -48,6 +48,7 @@ from pipeline.bsp_minmax import (
     surface_bvh,
     tree_depth,
 )
+from pipeline.rkernels import r0_and, sardf_and
 
 # --- opcodes ------------------------------------------------------------------------------------
 X, Y, Z, CONST, ADD, SUB, MUL, DIV, NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, MIN, MAX, R0AND, \
@@ -417,23 +418,6 @@ def _compact(op, a, b, c, res):
 
 
 @njit(cache=True, inline="always")
-def _r0and(f1, f2):
-    s = f1 + f2
-    rho = math.hypot(f1, f2)
-    return 2.0 * f1 * f2 / (s + rho) if s > 0 else s - rho
-
-
-@njit(cache=True, inline="always")
-def _sardfand(f1, f2, k):
-    rho = math.hypot(f1, f2)
-    u = f1 - f2
-    w = k * rho
-    if abs(u) >= w:
-        return min(f1, f2)
-    return 0.5 * (f1 + f2 - (u * u + w * w) / (2.0 * w))
-
-
-@njit(cache=True, inline="always")
 def _compress(f, cc):
     a = abs(f)
     if not a > cc:
@@ -505,9 +489,9 @@ def _apply(op, va, vb, c):
     if op == MAX:
         return max(va, vb) if va == va and vb == vb else math.nan
     if op == R0AND:
-        return _r0and(va, vb)
+        return r0_and(va, vb)
     if op == SARDFAND:
-        return _sardfand(va, vb, c)
+        return sardf_and(va, vb, c)
     if op == COMPRESS:
         return _compress(va, c)
     return c  # CONST
@@ -609,7 +593,7 @@ def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m, orc, sj, sv, spec, cn
                 reg[k, v] = _powc(reg[ia, v], ck)
         elif o == R0AND:
             for v in range(m):
-                reg[k, v] = _r0and(reg[ia, v], reg[ib, v])
+                reg[k, v] = r0_and(reg[ia, v], reg[ib, v])
         elif o == MIN:
             for v in range(m):
                 reg[k, v] = _apply(MIN, reg[ia, v], reg[ib, v], ck)
@@ -940,9 +924,9 @@ def _interval(o, alo, ahi, blo, bhi, c):
             return blo, bhi, 2
         return max(alo, blo), max(ahi, bhi), 0
     if o == R0AND:  # nondecreasing in both arguments
-        return _r0and(alo, blo), _r0and(ahi, bhi), 0
+        return r0_and(alo, blo), r0_and(ahi, bhi), 0
     if o == SARDFAND:
-        return _sardfand(alo, blo, c), _sardfand(ahi, bhi, c), 0
+        return sardf_and(alo, blo, c), sardf_and(ahi, bhi, c), 0
     if o == COMPRESS:
         return _compress(alo, c), _compress(ahi, c), 0
     return c, c, 0

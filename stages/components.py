@@ -22,7 +22,8 @@ from pydantic import Field, model_validator
 from pipeline import components as cc
 from pipeline import rfunctions as rf
 from pipeline.atomic import atomic_path
-from pipeline.grid import BlockGrid, frep_to_vdb, linear_transform, vdb, write_blocks
+from pipeline.blockwrite import write_leaves
+from pipeline.grid import BlockGrid, frep_to_vdb, linear_transform, vdb
 from stages.base import StageParams
 
 REQUIRES = ("voxelise",)
@@ -79,10 +80,10 @@ def run(ctx, p: Params) -> dict:
                "labelling": {"bricked": bool(job.bricks), **found.tree.stats.get("bricked", {})}}
     if len(kept) < found.count:
         labels = _keep_pieces(ctx, found, labels, kept)
-    ctx.grids["component"] = _label_grid(ctx, p, blocks if len(kept) == found.count else ctx.blocks["frep"],
-                                         labels, found)
-    ctx.blocks["component"] = BlockGrid(blocks.voxel_size, 0.0, ctx.blocks["frep"].origins,
-                                        labels.astype(np.float32), ctx.blocks["frep"].active.copy())
+    lab = BlockGrid(blocks.voxel_size, 0.0, ctx.blocks["frep"].origins, labels.astype(np.float32),
+                    ctx.blocks["frep"].active.copy())
+    ctx.grids["component"] = _label_grid(ctx, p, lab, found)
+    ctx.blocks["component"] = lab
     if p.separate:
         section.update(_separate(ctx, p, found, labels, kept, depth if fine_is_voxel else None))
     ctx.manifest["components"] = section
@@ -150,12 +151,11 @@ def _keep_pieces(ctx, found: cc.Components, labels: np.ndarray, kept: list[int])
     return np.where(keep_mask, labels, 0)[rows]
 
 
-def _label_grid(ctx, p: Params, blocks: BlockGrid, labels: np.ndarray, found: cc.Components):
+def _label_grid(ctx, p: Params, lab: BlockGrid, found: cc.Components):
     grid = vdb.FloatGrid(0.0)
     grid.name = "component"
-    grid.transform = linear_transform(blocks.voxel_size)
-    lab = BlockGrid(blocks.voxel_size, 0.0, blocks.origins, labels.astype(np.float32), blocks.active)
-    write_blocks(grid, lab)
+    grid.transform = linear_transform(lab.voxel_size)
+    write_leaves(grid, lab)
     grid.updateMetadata({**ctx.grid_metadata("components", p), "component_count": int(found.count),
                          "component_volumes": json.dumps([round(float(v), 9) for v in found.volumes])})
     return grid

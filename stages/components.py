@@ -80,10 +80,12 @@ def run(ctx, p: Params) -> dict:
                "labelling": {"bricked": bool(job.bricks), **found.tree.stats.get("bricked", {})}}
     if len(kept) < found.count:
         labels = _keep_pieces(ctx, found, labels, kept)
+    # written and dropped: nothing after this stage reads the labels as blocks (export samples
+    # the grid), and at 1024^3 they would hold ~0.5 GB through hfrep and export
     lab = BlockGrid(blocks.voxel_size, 0.0, ctx.blocks["frep"].origins, labels.astype(np.float32),
-                    ctx.blocks["frep"].active.copy())
+                    ctx.blocks["frep"].active)
     ctx.grids["component"] = _label_grid(ctx, p, lab, found)
-    ctx.blocks["component"] = lab
+    del lab
     if p.separate:
         section.update(_separate(ctx, p, found, labels, kept, depth if fine_is_voxel else None))
     ctx.manifest["components"] = section

@@ -1008,6 +1008,10 @@ def _parse_path(s: str) -> list:
 
 
 HFREP_BYTES_PER_VOXEL = 30  # measured peak of the hfrep stage per interior voxel (docs/performance.md)
+# the same for the shell the coarse-interior solve works on: the demo at 1024^3 (session 8) adds
+# 1.75 GiB over what voxelise leaves for ~306 M shell voxels as estimated below (~6 bytes);
+# 10 keeps a margin (the old 30 refused the demo at 2048^3 with 37 GiB that needs ~12)
+SHELL_BYTES_PER_VOXEL = 10
 ROOT_CELL_BYTES = 160  # per top-level cell of the enumeration: its index arrays, boxes and bounds
 
 
@@ -1030,7 +1034,8 @@ def _check_memory(job: Job, ctx: _Ctx, base: tuple = ()) -> None:
     est = {n: band for n, _ in job.stages}  # every stage holds the band grids
     hfrep = next((p for n, p in job.stages if n == "hfrep"), None)
     if hfrep is not None:
-        est["hfrep"] = band + HFREP_BYTES_PER_VOXEL * _hfrep_voxels(job, hfrep, voxelise.band, band)
+        per_voxel = HFREP_BYTES_PER_VOXEL if _hfrep_fine(hfrep) else SHELL_BYTES_PER_VOXEL
+        est["hfrep"] = band + per_voxel * _hfrep_voxels(job, hfrep, voxelise.band, band)
     job.memory_estimate = {n: int(v) for n, v in est.items()}
     stage = max(est, key=est.get)
     if est[stage] > avail:

@@ -75,32 +75,10 @@ HIST_MAX, HIST_BINS = 4.0, 40_000  # |grad| histogram: 1e-4 resolution for the p
 @njit(cache=True)
 def _load_padded(vals, act, nbr, b, buf, abuf):
     """Block b and its six face layers (from the face neighbours) into (10,10,10) buffers."""
-    abuf[:] = False
-    for i in range(8):
-        for j in range(8):
-            for k in range(8):
-                buf[i + 1, j + 1, k + 1] = vals[b, i, j, k]
-                abuf[i + 1, j + 1, k + 1] = act[b, i, j, k]
-    for u in range(8):
-        for v in range(8):
-            n = nbr[b, 0]
-            if n >= 0:
-                buf[0, u + 1, v + 1], abuf[0, u + 1, v + 1] = vals[n, 7, u, v], act[n, 7, u, v]
-            n = nbr[b, 1]
-            if n >= 0:
-                buf[9, u + 1, v + 1], abuf[9, u + 1, v + 1] = vals[n, 0, u, v], act[n, 0, u, v]
-            n = nbr[b, 2]
-            if n >= 0:
-                buf[u + 1, 0, v + 1], abuf[u + 1, 0, v + 1] = vals[n, u, 7, v], act[n, u, 7, v]
-            n = nbr[b, 3]
-            if n >= 0:
-                buf[u + 1, 9, v + 1], abuf[u + 1, 9, v + 1] = vals[n, u, 0, v], act[n, u, 0, v]
-            n = nbr[b, 4]
-            if n >= 0:
-                buf[u + 1, v + 1, 0], abuf[u + 1, v + 1, 0] = vals[n, u, v, 7], act[n, u, v, 7]
-            n = nbr[b, 5]
-            if n >= 0:
-                buf[u + 1, v + 1, 9], abuf[u + 1, v + 1, 9] = vals[n, u, v, 0], act[n, u, v, 0]
+    _load_padded_rows(vals, act, _SAME_ROWS, nbr, b, buf, abuf)
+
+
+_SAME_ROWS = np.zeros(0, np.int64)  # _load_padded_rows: block b is row b of the values
 
 
 @njit(cache=True)
@@ -227,10 +205,12 @@ def _sign_flips(vals, act, ref, ref_act, rows, nbr, chunks):
 @njit(cache=True)
 def _load_padded_rows(vals, act, rows, nbr, b, buf, abuf):
     """:func:`_load_padded` of another grid's blocks: block b (and face neighbour n) is row
-    ``rows[b]`` (``rows[n]``) of ``vals``; missing rows read as inactive zeros."""
+    ``rows[b]`` (``rows[n]``) of ``vals``, row b itself when ``rows`` is empty; missing rows
+    read as inactive zeros."""
+    same = rows.shape[0] == 0
     abuf[:] = False
     buf[:] = 0.0
-    r = rows[b]
+    r = b if same else rows[b]
     if r >= 0:
         for i in range(8):
             for j in range(8):
@@ -239,9 +219,9 @@ def _load_padded_rows(vals, act, rows, nbr, b, buf, abuf):
                     abuf[i + 1, j + 1, k + 1] = act[r, i, j, k]
     for f in range(6):
         n = nbr[b, f]
-        if n < 0 or rows[n] < 0:
+        r = n if same or n < 0 else rows[n]
+        if r < 0:
             continue
-        r = rows[n]
         for u in range(8):
             for v in range(8):
                 if f == 0:

@@ -93,15 +93,22 @@ def test_fim_dirty_faces_give_the_full_sweeps_result() -> None:
 
 
 def test_batched_writer_builds_the_same_grid() -> None:
-    """blockwrite.write_leaves (runs packed by a compiled pass, split where a batch ends) gives
-    the grid write_blocks gives: same values, active voxels and leaves."""
+    """grid.write_blocks and blockwrite.write_leaves (runs packed by a compiled pass, split where
+    a batch ends) give the grid of a plain reference, one copyFromArray per block of
+    where(active, -value, background): same values, active voxels and leaves."""
     from pipeline.blockwrite import write_leaves
     from pipeline.grid import vdb, write_blocks
 
     frep, (lo, hi) = band_grid(sphere, 48)
     shape = tuple(int(x) for x in hi - lo + 9)
+    bg = np.float32(frep.background)
+
+    def reference(g):
+        for o, v, m in zip(frep.origins, frep.values, frep.active, strict=True):
+            g.copyFromArray(np.where(m, -v, bg).astype(np.float32), tuple(int(x) for x in o))
+
     grids = []
-    for write in (lambda g: write_blocks(g, frep, -1.0), lambda g: write_leaves(g, frep, -1.0, batch=37)):
+    for write in (reference, lambda g: write_blocks(g, frep, -1.0), lambda g: write_leaves(g, frep, -1.0, batch=37)):
         g = vdb.FloatGrid(float(frep.background))
         g.name = "g"
         write(g)
@@ -111,9 +118,10 @@ def test_batched_writer_builds_the_same_grid() -> None:
         m = np.zeros(shape, np.float32)
         g.copyToArray(m, tuple(int(x) for x in lo - 8))
         grids.append((a, m == 12345.0, g.leafCount(), g.activeVoxelCount()))
-    (a0, m0, n0, v0), (a1, m1, n1, v1) = grids
-    assert np.array_equal(a0, a1) and np.array_equal(m0, m1) and (n0, v0) == (n1, v1) == (len(frep.origins),
-                                                                                      frep.active_count)
+    (a0, m0, n0, v0) = grids[0]
+    assert (n0, v0) == (len(frep.origins), frep.active_count) and m0.sum() == v0 and (a0[m0] != 0).any()
+    for a1, m1, n1, v1 in grids[1:]:
+        assert np.array_equal(a0, a1) and np.array_equal(m0, m1) and (n0, v0) == (n1, v1)
 
 
 def test_release_rows_frees_whole_pages_of_the_given_rows_only() -> None:
@@ -129,13 +137,13 @@ def test_release_rows_frees_whole_pages_of_the_given_rows_only() -> None:
 
 
 def test_surface_grid_consuming_the_solve_writes_the_same_grid(sph, monkeypatch) -> None:
-    from pipeline import blockwrite
+    from pipeline import grid as grid_module
     from pipeline.blockwrite import mapped_empty
     from pipeline.eikonal import EikonalResult, surface_grid
     from pipeline.grid import BlockGrid
 
     _, res = sph
-    monkeypatch.setattr(blockwrite, "BATCH", 7)  # many batches, each releasing the blocks before the next
+    monkeypatch.setattr(grid_module, "BATCH", 7)  # many batches, each releasing the blocks before the next
     grids = []
     for consume in (False, True):
         d = res.distance

@@ -79,6 +79,26 @@ def _pack_rows(coords, rows, every, shift):
     return out
 
 
+def unique_keys(keys: np.ndarray, inverse: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """np.unique(keys, return_inverse=True) by a stable (tim)sort: the octree's keys come in long
+    sorted runs (cells are made in key order level by level, parents of sorted children are a
+    few interleaved runs), which timsort merges in near-linear time where np.unique's quicksort
+    does not (10M ancestor keys: 0.39 s instead of 1.3 s). ``inverse`` False: (unique, None)."""
+    keys = np.asarray(keys, np.int64).reshape(-1)
+    if len(keys) == 0:
+        return keys.copy(), np.zeros(0, np.int64)
+    order = np.argsort(keys, kind="stable") if inverse else None
+    s = keys[order] if inverse else np.sort(keys, kind="stable")
+    first = np.empty(len(s), bool)
+    first[0] = True
+    np.not_equal(s[1:], s[:-1], out=first[1:])
+    if not inverse:
+        return s[first], None
+    inv = np.empty(len(keys), np.int64)
+    inv[order] = np.cumsum(first) - 1
+    return s[first], inv
+
+
 def unpack(keys: np.ndarray) -> np.ndarray:
     return np.stack([(keys >> (2 * _BITS)) & _MASK, (keys >> _BITS) & _MASK, keys & _MASK], axis=1)
 
@@ -376,7 +396,7 @@ class _CornerCache:
 
     def values(self, lattice: np.ndarray) -> np.ndarray:
         keys = pack(lattice.reshape(-1, 3))
-        uniq, inv = np.unique(keys, return_inverse=True)
+        uniq, inv = unique_keys(keys)
         pos = np.minimum(np.searchsorted(self.keys, uniq), max(len(self.keys) - 1, 0))
         known = (self.keys[pos] == uniq) if len(self.keys) else np.zeros(len(uniq), bool)
         vals = np.empty(len(uniq))
@@ -491,7 +511,7 @@ def _region_mask(coords, c, origin, rlo, rhi):
 
 
 def _unique_rows(a: np.ndarray) -> np.ndarray:
-    return unpack(np.unique(pack(a))) if len(a) else a.reshape(0, 3)
+    return unpack(unique_keys(pack(a), inverse=False)[0]) if len(a) else a.reshape(0, 3)
 
 
 def _children(coords: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
@@ -724,7 +744,7 @@ def _continuation(cells, signs, cache, depth, origin, size, region, st, brick=No
     ``have``: sorted packed keys already enumerated (default: ``cells``). With ``brick`` the
     walk stays inside it and the cells it would enter outside are returned as escaped."""
     keys = pack(cells)
-    order = np.argsort(keys)
+    order = np.argsort(keys, kind="stable")
     frontier_k, frontier_s = keys[order], signs[order]
     have = frontier_k if have is None else have
     added_c, added_s, escaped = [cells], [signs], [np.zeros((0, 3), np.int64)]
@@ -740,7 +760,7 @@ def _continuation(cells, signs, cache, depth, origin, size, region, st, brick=No
         ns = _corner_signs(cache, new, 1)
         st["continuation_cells"] += len(new)
         frontier_k = pack(new)  # sorted: _unique_rows orders by key
-        have = np.sort(np.concatenate([have, frontier_k]))
+        have = np.sort(np.concatenate([have, frontier_k]), kind="stable")  # timsort: merges the two sorted runs
         added_c.append(new)
         added_s.append(ns)
         frontier_s = ns
@@ -836,7 +856,7 @@ def _truncate(tree: Octree, level: int) -> tuple[Octree, np.ndarray]:
     its ancestor at ``level``)."""
     deep = tree.level > level
     drows = np.flatnonzero(deep)
-    keys, inv = np.unique(pack_rows(tree.coords, drows, tree.level[drows] - level), return_inverse=True)
+    keys, inv = unique_keys(pack_rows(tree.coords, drows, tree.level[drows] - level))
     anc = unpack(keys) if len(keys) else np.zeros((0, 3), np.int64)
     keep = ~deep
     nk, n = int(np.count_nonzero(keep)), len(anc)

@@ -288,7 +288,7 @@ def _int_power(a0, a1, a2, a3, a4, n):
 @_jit()
 def _power(a0, a1, a2, a3, a4, p):
     """affine.power: integer p by the exact rules, real p for x >= 0 (Chebyshev)."""
-    if p == math.floor(p) and abs(p) < 2.0 ** 62:
+    if p == np.floor(p) and abs(p) < 2.0 ** 62:
         n = int(p)
         m = abs(n)
         if m == 0:
@@ -303,9 +303,9 @@ def _power(a0, a1, a2, a3, a4, p):
         if n < 0:
             return _recip(*f)
         return f
-    if not math.isfinite(p):
-        return _unbounded()
     lo, hi = _interval(a0, a1, a2, a3, a4)
+    if not math.isfinite(p) or (p == np.floor(p) and lo < 0.0):  # an integer beyond int64: x < 0 is defined
+        return _unbounded()
     lo = max(lo, 0.0)
     hi = max(hi, lo)
     return _chebyshev(a0, a1, a2, a3, a4, lo, hi, _K_RPOW, p)

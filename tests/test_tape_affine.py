@@ -174,3 +174,14 @@ def test_log_and_division_across_zero_are_unbounded() -> None:
     assert np.isfinite(flo[1]) and np.isfinite(fhi[1])
     v = np.log(np.linspace(0.5, 2, 101)) + 1 / np.linspace(0.5, 2, 101)
     assert flo[1] <= v.min() and v.max() <= fhi[1]
+
+
+def test_integer_power_beyond_int64_is_not_taken_for_a_real_power() -> None:
+    """x ** 1e20 is defined for x < 0 (an even integer power); the real-power rule (x >= 0 only)
+    would bound it by 0 over a box across 0. Numba's math.floor returns an int64 (1e20 overflows),
+    so the kernel tests integrality with np.floor: this failed with math.floor."""
+    for p in (1e20, 2.0**63):
+        tp = pt.Tape(np.array([pt.X, pt.POWC]), np.array([-1, 0]), np.array([-1, -1]), np.array([0.0, p]), 1)
+        flo, fhi = affine_bounds(tp, np.array([[-0.5, 0, 0], [0.2, 0, 0]]), np.array([[0.5, 0, 0], [0.9, 0, 0]]))
+        assert flo[0] == -np.inf and fhi[0] == np.inf
+        assert flo[1] <= 0.0 <= fhi[1] < 1e-200  # 0.9 ** 1e20 underflows to 0

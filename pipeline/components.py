@@ -975,7 +975,7 @@ def _nearest_fine(active, lab, fine, nbr27, offsets):
     that has such voxels first copies the finest-cell labels of its 27 neighbours within
     reach into a window (-1: not a finest cell, or no block), so that each offset costs one
     read instead of a block lookup."""
-    out = lab.copy()
+    out = lab  # in place: only non-finest voxels are written, and the windows read finest ones only
     miss = np.zeros(active.shape, np.bool_)
     r = _NEAR_R
     w = 8 + 2 * r
@@ -988,7 +988,7 @@ def _nearest_fine(active, lab, fine, nbr27, offsets):
                         todo = True
         if not todo:
             continue
-        win = np.full((w, w, w), -1, np.int64)
+        win = np.full((w, w, w), -1, lab.dtype)
         for x in range(-r, 8 + r):
             for y in range(-r, 8 + r):
                 for z in range(-r, 8 + r):
@@ -1030,15 +1030,15 @@ def block_labels(comp: Components, blocks, index_min) -> np.ndarray:
     from pipeline.grid import LEAF
 
     n = len(blocks.origins)
-    lab = np.zeros((n, LEAF, LEAF, LEAF), np.int64)
+    lab = np.zeros((n, LEAF, LEAF, LEAF), np.int32)  # labels < 2^31; int64 was 0.6 GB at 1024^3
     if comp.count == 0 or n == 0:
         return lab
     tree = comp.tree
     fine = np.zeros(lab.shape, bool)
     imin = np.asarray(index_min, np.int64)
     painted = _paint_cells(blocks._keys, tree.level.astype(np.int64), tree.coords.astype(np.int64),
-                           comp.labels.astype(np.int64), int(tree.depth), imin, lab, fine, True)
-    lab = np.where(blocks.active, lab, 0)
+                           comp.labels.astype(np.int32), int(tree.depth), imin, lab, fine, True)
+    lab *= blocks.active
     if painted != int((tree.level == tree.depth).sum()):  # a finest cell off the blocks: no local search
         miss = blocks.active & (lab == 0)
     else:
@@ -1249,6 +1249,19 @@ def _separated_piece(rows, origins, active, labels, piece, values, inside, h, bl
     return out, act
 
 
+@numba.njit(cache=True, parallel=True)
+def _rows_with_label(active, labels, piece):
+    """Rows of the blocks with an active voxel labelled ``piece`` (in order)."""
+    has = np.zeros(active.shape[0], np.bool_)
+    for b in numba.prange(active.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if active[b, i, j, k] and labels[b, i, j, k] == piece:
+                        has[b] = True
+    return np.flatnonzero(has)
+
+
 class _BoxIndex:
     """Boxes of one size class binned by centre on a uniform grid (a sparse spatial hash)."""
 
@@ -1341,7 +1354,7 @@ class ClusterField:
         octree search per voxel, and the distance computed block by block in one compiled pass."""
         if self.method != "surface":
             raise ValueError("piece_blocks evaluates the surface field; use value() for the cell union")
-        rows = np.flatnonzero((blocks.active & (labels == piece)).any(axis=(1, 2, 3)))
+        rows = _rows_with_label(blocks.active, labels, piece)
         tree = self.comp.tree
         mine = self.comp.labels == self.label
         inside = np.zeros((len(rows), 8, 8, 8), np.int8)

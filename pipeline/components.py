@@ -30,6 +30,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.rkernels import r0_and
+from pipeline.tape import compile_model, evaluate_with
+from pipeline.tape_affine import affine_bounds
 
 if TYPE_CHECKING:
     from pipeline.nodes.base import Node
@@ -375,8 +377,6 @@ class _CornerCache:
     """Field values at lattice points of the finest level, evaluated once (eq. 3 control range)."""
 
     def __init__(self, model: Node, origin: np.ndarray, step: float, t: float):
-        from pipeline.tape import compile_model
-
         self.model, self.origin, self.step, self.t = model, origin, step, t
         self.keys = np.zeros(0, np.int64)
         self.vals = np.zeros(0)
@@ -385,12 +385,7 @@ class _CornerCache:
 
     def evaluate(self, points: np.ndarray) -> np.ndarray:
         """f at world points (N,3), NaN as -inf (outside), by the tape when the model has one."""
-        if self.tape is not None:
-            from pipeline.tape import evaluate_with
-
-            fv = evaluate_with(self.tape, points)
-        else:
-            fv = self.model.evaluate(points, self.t)
+        fv = evaluate_with(self.tape, points) if self.tape is not None else self.model.evaluate(points, self.t)
         self.evaluations += len(points)
         return np.where(np.isnan(fv), -np.inf, fv)
 
@@ -485,6 +480,12 @@ def _assemble_children(psigns, new, from_parent, even, odd, child_idx):
 
 
 def _affine(model: Node, lo: np.ndarray, hi: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """Revised affine bounds of the model over boxes (section 3.2): compiled over the model's tape
+    when it has one (pipeline.tape_affine: the same rules, ~4x faster than the node-by-node
+    NumPy forms), else ``model.bound`` a chunk at a time."""
+    tape = compile_model(model, t)
+    if tape is not None:
+        return affine_bounds(tape, lo, hi)
     flo, fhi = np.empty(len(lo)), np.empty(len(lo))
     for s in range(0, len(lo), BOUND_CHUNK):
         flo[s:s + BOUND_CHUNK], fhi[s:s + BOUND_CHUNK] = model.bound(lo[s:s + BOUND_CHUNK], hi[s:s + BOUND_CHUNK], t)

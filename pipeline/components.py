@@ -731,12 +731,33 @@ def _finest(model, cells, signs, origin, size, depth, t, cache, st, continuation
 
 
 def _finest_kinds(cells: np.ndarray, signs: np.ndarray) -> dict:
-    """Finest cells by the control range (eq. 3): all corners positive -> inside, mixed -> border."""
-    npos = _POPCOUNT[signs]
-    inside = npos == 8
-    border = (npos > 0) & (npos < 8)
-    return {INSIDE: (cells[inside], np.ones(int(inside.sum()))),
-            BORDER: (cells[border], npos[border] / 8.0)}
+    """Finest cells by the control range (eq. 3): all corners positive -> inside, mixed -> border
+    (one compiled pass: the masks and gathers over ~10M cells took 0.7-0.9 s at 1024^3)."""
+    ins, inside_f, bor, border_f = _split_kinds(np.ascontiguousarray(cells, dtype=np.int64), signs)
+    return {INSIDE: (ins, inside_f), BORDER: (bor, border_f)}
+
+
+@numba.njit(cache=True)
+def _split_kinds(cells, signs):
+    n_in = n_bo = 0
+    for r in range(signs.shape[0]):
+        if signs[r] == 255:
+            n_in += 1
+        elif signs[r] != 0:
+            n_bo += 1
+    ins, bor = np.empty((n_in, 3), np.int64), np.empty((n_bo, 3), np.int64)
+    border_f = np.empty(n_bo)
+    a = b = 0
+    for r in range(signs.shape[0]):
+        s = signs[r]
+        if s == 255:
+            ins[a] = cells[r]
+            a += 1
+        elif s != 0:
+            bor[b] = cells[r]
+            border_f[b] = _POPCOUNT[s] / 8.0
+            b += 1
+    return ins, np.ones(n_in), bor, border_f
 
 
 def _continuation(cells, signs, cache, depth, origin, size, region, st, brick=None, have=None):

@@ -643,3 +643,42 @@ def test_piece_blocks_equal_the_separation_field_at_every_voxel(gap, cut):
         want = rf.r_and(blocks.values[rows][b, i, j, kk].astype(np.float64), g, "r0").astype(np.float32)
         assert np.array_equal(vals[b, i, j, kk].view(np.int32), want.view(np.int32))
         assert np.all(vals[~act] == np.float32(blocks.background))
+
+
+# --- the compiled key helpers against their NumPy definitions ------------------------------------------
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 60_000), st.integers(1, 2_000), st.integers(0, 5), st.booleans(), st.integers(0, 2**31))
+def test_pack_rows_and_unique_keys_equal_numpy(n, span, shift, sorted_runs, seed) -> None:
+    """pack_rows(coords, rows, shift) == pack(coords[rows] >> shift) and unique_keys == np.unique
+    (values and inverse), on random cells and on cells that come in sorted runs (as the octree's do);
+    sizes on both sides of pack's small-array path."""
+    rng = np.random.default_rng(seed)
+    coords = rng.integers(0, span, (n, 3), dtype=np.int64)
+    if sorted_runs and n:
+        coords = cc.unpack(np.sort(cc.pack(coords)))
+    rows = rng.permutation(n)[: n // 2]
+    shifts = rng.integers(0, shift + 1, len(rows))
+    ref = (coords[rows] >> shifts[:, None])
+    ref = (ref[:, 0] << 42) | (ref[:, 1] << 21) | ref[:, 2]
+    assert np.array_equal(cc.pack_rows(coords, rows, shifts), ref)
+    assert np.array_equal(cc.pack(coords), cc.pack_rows(coords))
+    assert np.array_equal(cc.pack_rows(coords, np.zeros(0, np.int64)), np.zeros(0, np.int64))  # no rows: none
+    u, inv = cc.unique_keys(ref)
+    ru, rinv = np.unique(ref, return_inverse=True)
+    assert np.array_equal(u, ru) and np.array_equal(inv, rinv.reshape(-1))
+    assert np.array_equal(cc.unique_keys(ref, inverse=False)[0], ru)
+
+
+def test_finest_kinds_split_by_the_control_range() -> None:
+    """Inside: all 8 corners positive (255); border: mixed, with the fraction of positive corners;
+    outside (0) dropped; in the cells' order."""
+    rng = np.random.default_rng(3)
+    cells = rng.integers(0, 100, (5000, 3))
+    signs = rng.choice(np.array([0, 255, 1, 7, 128, 254], np.uint8), 5000)
+    kinds = cc._finest_kinds(cells, signs)
+    npos = np.array([bin(int(s)).count("1") for s in signs])
+    assert np.array_equal(kinds[cc.INSIDE][0], cells[npos == 8]) and (kinds[cc.INSIDE][1] == 1).all()
+    mixed = (npos > 0) & (npos < 8)
+    assert np.array_equal(kinds[cc.BORDER][0], cells[mixed]) and np.allclose(kinds[cc.BORDER][1], npos[mixed] / 8)

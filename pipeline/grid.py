@@ -200,24 +200,46 @@ def frep_to_vdb(blocks: BlockGrid, inside_boxes: np.ndarray, name: str = "frep",
     grid.signedFloodFill()
     negate_active(grid)
     grid.background = -bg  # swaps +bg <-> -bg on inactive values and tiles
-    for lo, hi in _boxes_to_fill(blocks, inside_boxes):
-        grid.fill(tuple(int(c) for c in lo), tuple(int(c) for c in hi), bg, False)
+    has_active = leaf_has_active(blocks.active)
+    _fill_boxes(grid, _boxes_to_fill(blocks, inside_boxes, has_active), bg)
     if outside_boxes is not None:
-        for lo, hi in np.asarray(outside_boxes, np.int64).reshape(-1, 2, 3):
-            grid.fill(tuple(int(c) for c in lo), tuple(int(c) for c in hi), -bg, False)
+        _fill_boxes(grid, outside_boxes, -bg)
     if domain is not None:
-        _fix_untrusted_leaves(grid, blocks, np.asarray(domain[0]), np.asarray(domain[1]), bg)
+        _fix_untrusted_leaves(grid, blocks, np.asarray(domain[0]), np.asarray(domain[1]), bg, has_active)
     grid.prune()
     return grid
 
 
-def _fix_untrusted_leaves(grid, blocks: BlockGrid, imin: np.ndarray, imax: np.ndarray, bg: float) -> int:
+def _fill_boxes(grid, boxes: np.ndarray, value: float) -> None:
+    """Inactive ``value`` over every (lo, hi) index box (corners as Python lists: one fill call
+    costs ~0.7 us, converting each corner's NumPy integers ~2 us more)."""
+    b = np.asarray(boxes, np.int64).reshape(-1, 2, 3)
+    fill = grid.fill
+    for lo, hi in zip(b[:, 0].tolist(), b[:, 1].tolist(), strict=True):
+        fill(lo, hi, value, False)
+
+
+@njit(cache=True, parallel=True)
+def leaf_has_active(active: np.ndarray) -> np.ndarray:
+    """Whether each (8, 8, 8) block has an active voxel (one parallel pass)."""
+    out = np.zeros(active.shape[0], np.bool_)
+    for r in prange(active.shape[0]):
+        fa = active[r].reshape(-1)
+        for n in range(fa.size):
+            if fa[n]:
+                out[r] = True
+                break
+    return out
+
+
+def _fix_untrusted_leaves(grid, blocks: BlockGrid, imin: np.ndarray, imax: np.ndarray, bg: float,
+                         has_active: np.ndarray | None = None) -> int:
     """Set the sign of the leaves the flood fill cannot be trusted with (see frep_to_vdb)."""
     o = blocks.origins
     if len(o) == 0:
         return 0
     cut = np.any(o < imin, axis=1) | np.any(o + LEAF - 1 > imax, axis=1)
-    empty = ~blocks.active.reshape(len(o), -1).any(axis=1)
+    empty = ~(leaf_has_active(blocks.active) if has_active is None else has_active)
     fixed = 0
     r = np.arange(LEAF)
     for n in np.flatnonzero(cut | empty):
@@ -240,9 +262,10 @@ def _fix_untrusted_leaves(grid, blocks: BlockGrid, imin: np.ndarray, imax: np.nd
     return fixed
 
 
-def _boxes_to_fill(blocks: BlockGrid, inside_boxes: np.ndarray) -> np.ndarray:
+def _boxes_to_fill(blocks: BlockGrid, inside_boxes: np.ndarray, leaf_active: np.ndarray | None = None) -> np.ndarray:
     """Inside boxes that need an explicit fill: all tile-sized ones, and the sub-leaf ones whose
-    leaf has no active voxel (inside a leaf with active voxels the flood fill already set them)."""
+    leaf has no active voxel (inside a leaf with active voxels the flood fill already set them).
+    ``leaf_active``: :func:`leaf_has_active` of the blocks, when known."""
     boxes = np.asarray(inside_boxes, dtype=np.int64).reshape(-1, 2, 3)
     if len(boxes) == 0 or len(blocks.origins) == 0:
         return boxes
@@ -250,10 +273,11 @@ def _boxes_to_fill(blocks: BlockGrid, inside_boxes: np.ndarray) -> np.ndarray:
     leaf = (lo >> LEAF_LOG2) << LEAF_LOG2
     within_leaf = np.all((hi >> LEAF_LOG2) << LEAF_LOG2 == leaf, axis=1)
     row = blocks.block_index(leaf)
+    if leaf_active is None:
+        leaf_active = leaf_has_active(blocks.active)
     has_active = np.zeros(len(boxes), bool)
     ok = row >= 0
-    if ok.any():
-        has_active[ok] = blocks.active[row[ok]].reshape(int(ok.sum()), -1).any(axis=1)
+    has_active[ok] = leaf_active[row[ok]]
     return boxes[~(within_leaf & has_active)]
 
 

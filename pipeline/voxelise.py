@@ -457,36 +457,42 @@ def close_band(grid: BlockGrid, known: np.ndarray) -> int:
     that of an evaluated face neighbour, within and across leaves. Returns how many were added."""
     if len(grid.origins) == 0:
         return 0
-    nbr = np.stack([grid.block_index(grid.origins + np.eye(3, dtype=np.int64)[a] * LEAF) for a in range(3)], axis=1)
+    step = np.eye(3, dtype=np.int64) * LEAF
+    nbr = np.stack([grid.block_index(grid.origins + d * step[a]) for d in (1, -1) for a in range(3)], axis=1)
     return int(_close_band(grid.values, grid.active, known, nbr.astype(np.int64)))
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _close_band(values, active, known, nbr) -> int:
-    added = 0
-    for r in range(values.shape[0]):
+    """One parallel pass over the leaves (``nbr``: the rows of the +x, +y, +z, -x, -y, -z
+    neighbour leaves, -1 where none): a known voxel with a known face neighbour of the other sign
+    becomes active. A leaf writes only its own flags and reads only values and known flags, so the
+    leaves are independent; the relation is symmetric, so both voxels of a pair are activated."""
+    added = np.zeros(values.shape[0], np.int64)
+    for r in prange(values.shape[0]):
+        row = nbr[r, 0] * 0 + r  # int64, as the neighbour rows (a prange index may be unsigned)
+        n = 0
         for i in range(LEAF):
             for j in range(LEAF):
                 for k in range(LEAF):
-                    if not known[r, i, j, k]:
+                    if not known[r, i, j, k] or active[r, i, j, k]:
                         continue
                     inside = values[r, i, j, k] > 0
-                    for axis in range(3):
-                        rr, ii, jj, kk = r, i + (axis == 0), j + (axis == 1), k + (axis == 2)
-                        if ii == LEAF or jj == LEAF or kk == LEAF:  # the neighbour leaf along +axis
-                            rr = nbr[r, axis]
+                    for s in range(6):
+                        d = 1 if s < 3 else -1
+                        axis = s % 3
+                        rr, ii, jj, kk = row, i + d * (axis == 0), j + d * (axis == 1), k + d * (axis == 2)
+                        if ii < 0 or jj < 0 or kk < 0 or ii == LEAF or jj == LEAF or kk == LEAF:
+                            rr = nbr[r, s]
                             if rr < 0:
                                 continue
-                            ii, jj, kk = ii % LEAF, jj % LEAF, kk % LEAF
-                        if not known[rr, ii, jj, kk] or (values[rr, ii, jj, kk] > 0) == inside:
-                            continue
-                        if not active[r, i, j, k]:
+                            ii, jj, kk = ii & (LEAF - 1), jj & (LEAF - 1), kk & (LEAF - 1)
+                        if known[rr, ii, jj, kk] and (values[rr, ii, jj, kk] > 0) != inside:
                             active[r, i, j, k] = True
-                            added += 1
-                        if not active[rr, ii, jj, kk]:
-                            active[rr, ii, jj, kk] = True
-                            added += 1
-    return added
+                            n += 1
+                            break
+        added[r] = n
+    return added.sum()
 
 
 @njit(cache=True)
@@ -612,8 +618,22 @@ def _inside_boxes(inside_levels, imin, imax) -> np.ndarray:
         boxes.append(np.stack([lo, hi], axis=1))
     if not boxes:
         return np.zeros((0, 2, 3), np.int64)
-    # bricks of one domain share their coarse cells: keep each box once
-    return np.unique(np.concatenate(boxes).reshape(-1, 6), axis=0).reshape(-1, 2, 3)
+    return unique_boxes(np.concatenate(boxes))
+
+
+def unique_boxes(boxes: np.ndarray) -> np.ndarray:
+    """``np.unique(boxes.reshape(-1, 6), axis=0)`` as (K, 2, 3): the boxes sorted by (lo, hi),
+    each once. The cells of one run are disjoint, so their low corners are distinct and one
+    sort of their packed keys gives that order (np.unique's row sort took 0.35 s for the 0.3M
+    boxes of the demo at 1024^3); the bricks of one domain share their coarse cells, and boxes
+    with equal low corners go to np.unique."""
+    rows = np.asarray(boxes, np.int64).reshape(-1, 6)
+    keys = pack_keys(rows[:, :3])
+    order = np.argsort(keys, kind="stable")
+    k = keys[order]
+    if len(k) > 1 and not np.all(k[1:] > k[:-1]):
+        return np.unique(rows, axis=0).reshape(-1, 2, 3)
+    return rows[order].reshape(-1, 2, 3)
 
 
 def estimate_band_bytes(model: Node, domain, band: float, t: float = 0.0) -> float:

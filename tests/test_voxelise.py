@@ -122,3 +122,47 @@ def test_nonfinite_field_is_reported():
     with pytest.raises(NonFiniteField) as err:
         voxelise(bad, imin, imax, h, 3.0)
     assert err.value.point[0] == 0.0  # the voxel where 1/x is not finite is the one reported
+
+
+def _dense_closure(origins, values, known, active):
+    """Reference of close_band on a dense copy: both voxels of every known face-neighbour pair of
+    different signs (f > 0) become active."""
+    lo = origins.min(axis=0)
+    shape = tuple(origins.max(axis=0) - lo + 8)
+    v, kn, ac = np.zeros(shape, np.float32), np.zeros(shape, bool), np.zeros(shape, bool)
+    for r, o in enumerate(origins - lo):
+        sl = tuple(slice(c, c + 8) for c in o)
+        v[sl], kn[sl], ac[sl] = values[r], known[r], active[r]
+    out = ac.copy()
+    for axis in range(3):
+        a = [slice(None)] * 3
+        b = [slice(None)] * 3
+        a[axis], b[axis] = slice(0, -1), slice(1, None)
+        pair = kn[tuple(a)] & kn[tuple(b)] & ((v[tuple(a)] > 0) != (v[tuple(b)] > 0))
+        out[tuple(a)] |= pair
+        out[tuple(b)] |= pair
+    return np.stack([out[tuple(slice(c, c + 8) for c in o)] for o in origins - lo]), int(out.sum() - ac.sum())
+
+
+def test_close_band_activates_both_sides_of_every_sign_change():
+    """close_band (one parallel pass, each leaf setting only its own voxels from its 6 neighbour
+    leaves) against a dense reference, on leaves that touch along every axis, both ways, with
+    gaps, unknown voxels and zeros (0 counts as outside)."""
+    from pipeline.grid import BlockGrid
+    from pipeline.voxelise import close_band
+
+    rng = np.random.default_rng(7)
+    cells = np.array([(i, j, k) for i in range(4) for j in range(3) for k in range(3)])
+    cells = cells[rng.random(len(cells)) < 0.7]
+    origins = (cells - 1) * 8
+    L = len(origins)
+    values = rng.choice([-1.0, 0.0, 1.0], size=(L, 8, 8, 8), p=[0.45, 0.05, 0.5]).astype(np.float32)
+    values *= rng.random((L, 8, 8, 8)).astype(np.float32) + 0.5
+    known = rng.random((L, 8, 8, 8)) < 0.8
+    active = known & (rng.random((L, 8, 8, 8)) < 0.3)
+    want, added_want = _dense_closure(origins, values, known, active)
+    grid = BlockGrid(0.1, -1.0, origins, values.copy(), active.copy())
+    rows = [np.flatnonzero((origins == o).all(axis=1))[0] for o in grid.origins]  # the grid's (sorted) order
+    added = close_band(grid, known[rows])
+    assert added == added_want > 0
+    assert np.array_equal(grid.active, want[rows])

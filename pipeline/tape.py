@@ -428,7 +428,7 @@ def _compress(f, cc):
 
 @njit(cache=True, inline="always")
 def _powc(v, p):
-    if v < 0.0 and p != math.floor(p):
+    if v < 0.0 and p != np.floor(p):  # np.floor: math.floor is an int64 in Numba (overflows at 1e20)
         return math.nan
     if v == 0.0 and p < 0:
         return math.inf
@@ -934,9 +934,11 @@ def _interval(o, alo, ahi, blo, bhi, c):
 
 @njit(cache=True)
 def _pow_interval(lo, hi, p):
-    if p == math.floor(p):
-        n = int(p)
-        if n >= 0 and n % 2 == 0:  # even: like sqr
+    if p == np.floor(p):  # an integer exponent (np.floor: math.floor is an int64 in Numba)
+        # every float of magnitude >= 2^53 is an even integer; below that int() is exact
+        even = abs(p) >= 2.0**53 or int(p) % 2 == 0
+        n = 1 if p >= 0 else -1  # only the sign of the exponent matters below
+        if n >= 0 and even:  # even: like sqr
             if lo >= 0.0:
                 return lo ** p, hi ** p, 0
             if hi <= 0.0:

@@ -448,3 +448,29 @@ def test_surface_culled_mesh_in_csg_written_everywhere(tmp_path, band) -> None:
              f"{{cylinder: {{center: [-0.4, 0, 0], radius: 0.12, axis: z}}}}], rfunc: min_max}}")
     r = check_frep_everywhere(tmp_path, frep_config(model, res=36, band=band))
     assert r["active"] > 0 and r["unclosed"] == 0 and r["wrong"] == 0
+
+
+@pytest.mark.parametrize("p", [2.0, 3.0, -2.0, -3.0, 0.5, 1e20, -1e20, 2.0**60 + 2.0**8, 1e300])
+def test_constant_powers_match_numpy_for_huge_exponents(p) -> None:
+    """x ** p on the tape (values and interval bounds) as NumPy computes it, for exponents past
+    int64 (an integer test by math.floor overflowed in Numba: (-0.5) ** 1e20 was NaN)."""
+    tb = pt.TapeBuilder()
+    x = tb.emit(pt.X)
+    tb.emit(pt.Y), tb.emit(pt.Z)
+    out = x.unary(pt.POWC, p)
+    op, a, b, c, res = pt._compact(np.array(tb.op), np.array(tb.a), np.array(tb.b), np.array(tb.c, float), out.pos)
+    tape = pt.Tape(op, a, b, c, res)
+    xs = np.array([-2.0, -1.0, -0.5, -0.1, 0.1, 0.5, 1.0, 2.0])
+    pts = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], 1)
+    with np.errstate(all="ignore"):
+        ref = np.power(xs, p)
+    got = pt.evaluate_with(tape, pts)
+    assert np.array_equal(np.isnan(got), np.isnan(ref)) and np.array_equal(np.isinf(got), np.isinf(ref))
+    np.testing.assert_allclose(got, ref, rtol=1e-14)  # NumPy squares p = 2 exactly; pow may be 1 ulp off
+    lo = np.array([[-0.5, 0, 0], [0.1, 0, 0], [-2.0, 0, 0], [-1.0, 0, 0]])
+    hi = np.array([[0.5, 0, 0], [2.0, 0, 0], [-0.1, 0, 0], [1.0, 0, 0]])
+    flo, fhi = pt.bound_with(tape, lo, hi)
+    for q in range(len(lo)):
+        v = pt.evaluate_with(tape, np.linspace(lo[q], hi[q], 101))
+        v = v[np.isfinite(v)]
+        assert (v >= flo[q]).all() and (v <= fhi[q]).all(), (q, flo[q], fhi[q], v.min(), v.max())

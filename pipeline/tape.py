@@ -11,6 +11,7 @@ return None and the model keeps the node-by-node evaluator.
 **Evaluators** (Numba, one clause loop per point or per box; cf. libfive's and Fidget's tapes):
 
 - :func:`eval_blocks`: values at the voxel centres of blocks, each block with its own tape;
+  :func:`eval_mark_leaves`: the same, band-marked and written into the blocks' 8^3 leaves in one pass;
 - :func:`bound_boxes`: interval bounds over boxes, each box with its own tape, recording for
   every ``min``/``max`` clause which operand decides it over the box;
 - :func:`specialise`: from those choices, the box's shortened tape — a ``min`` whose operand
@@ -639,8 +640,8 @@ def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, orc
 
 @njit(cache=True)
 def _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c, orc, reg, sj, sv, cn, co, cp, cq,
-                  cm, px, py, pz, out, treg, tfa):
-    """Values of block q's voxel centres into out[q]."""
+                  cm, px, py, pz, out, treg, tfa, slot=-1):
+    """Values of block q's voxel centres into out[q] (into out[slot] when slot >= 0)."""
     m = block * block * block
     v = 0
     for i in range(block):
@@ -654,11 +655,143 @@ def _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c
     vals = _run_batch(op, a, b, c, start[tp], length[tp], res[tp], px, py, pz, reg, m, orc, sj, sv, True, cn,
                       co, cp, cq, cm, treg, tfa)
     v = 0
+    row = q if slot < 0 else slot
     for i in range(block):
         for j in range(block):
             for k in range(block):
-                out[q, i, j, k] = vals[v]
+                out[row, i, j, k] = vals[v]
                 v += 1
+
+
+@njit(cache=True, parallel=True)
+def mark_band(v: np.ndarray, valid: np.ndarray, h: float, band: float) -> tuple[np.ndarray, int]:
+    """(band mask & valid, flat index of the first valid non-finite value or -1); a non-finite
+    value counts as -inf for its neighbours' sign tests. One parallel pass over the blocks."""
+    n = v.shape[0]
+    out = np.zeros(v.shape, dtype=np.bool_)
+    first = np.full(n, -1, np.int64)
+    for q in prange(n):
+        first[q] = _mark_block(v, valid, q, h, band, out)
+    for q in range(n):
+        if first[q] >= 0:
+            return out, first[q]
+    return out, -1
+
+
+@njit(cache=True)
+def _mark_block(v, valid, q, h, band, out) -> int:
+    """Band mask of block q into out[q]; the flat index of its first valid non-finite value or -1."""
+    b = v.shape[1]
+    lim = band * h
+    m = b * b * b
+    blk = np.empty((b, b, b))
+    bad = -1
+    for i in range(b):
+        for j in range(b):
+            for k in range(b):
+                f = v[q, i, j, k]
+                if not np.isfinite(f):
+                    if bad < 0 and valid[q, i, j, k]:
+                        bad = q * m + (i * b + j) * b + k
+                    f = -np.inf
+                blk[i, j, k] = f
+    for i in range(b):
+        for j in range(b):
+            for k in range(b):
+                f = blk[i, j, k]
+                g2 = 0.0
+                change = f == 0.0
+                for axis in range(3):
+                    lo_i, lo_j, lo_k, hi_i, hi_j, hi_k = i, j, k, i, j, k
+                    c = i if axis == 0 else (j if axis == 1 else k)
+                    if axis == 0:
+                        lo_i, hi_i = max(i - 1, 0), min(i + 1, b - 1)
+                    elif axis == 1:
+                        lo_j, hi_j = max(j - 1, 0), min(j + 1, b - 1)
+                    else:
+                        lo_k, hi_k = max(k - 1, 0), min(k + 1, b - 1)
+                    span = (min(c + 1, b - 1) - max(c - 1, 0)) * h
+                    a1 = blk[lo_i, lo_j, lo_k]
+                    a2 = blk[hi_i, hi_j, hi_k]
+                    if span > 0:
+                        d = (a2 - a1) / span
+                        g2 += d * d
+                    if (a1 > 0) != (f > 0) or (a2 > 0) != (f > 0):
+                        change = True
+                out[q, i, j, k] = valid[q, i, j, k] and (change or abs(f) <= lim * np.sqrt(g2))
+    return bad
+
+
+@njit(parallel=True, cache=True)
+def eval_mark_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen, lstart, lblocks,
+                     imin, imax, band, limit, outside, values, act, known):
+    """:func:`eval_blocks`, :func:`mark_band` and the scatter of the blocks into their 8^3 leaves
+    in one parallel pass over the leaves (no (N, b, b, b) float64 values, band or domain arrays).
+    Leaf r holds the blocks ``lblocks[lstart[r]:lstart[r + 1]]``; its ``values`` start at
+    ``outside``, ``act`` and ``known`` False (each leaf writes only its own rows, and touches
+    them first from the thread that fills them). A block's voxels inside the domain imin..imax
+    are known and hold their value clamped to +-limit (float32); those beyond hold ``outside``.
+    Returns (the flat index q * b^3 + v of the first non-finite value in the domain, in block
+    order, or -1; how many values were clamped; how many voxels were evaluated in the domain)."""
+    nl = lstart.shape[0] - 1
+    m = block * block * block
+    nn = max(orc[0].shape[0], 1)
+    per = max(4, (nl + 63) // 64)
+    nch = (nl + per - 1) // per
+    bad = np.full(nch, -1, np.int64)
+    nclamp = np.zeros(nch, np.int64)
+    nvalid = np.zeros(nch, np.int64)
+    for ch in prange(nch):
+        reg = np.empty((max(maxlen, 1), m))
+        sj = np.empty((3, odepth + 2), np.int64)
+        sv = np.empty((4, odepth + 2))
+        cn, co = np.empty((nn, 3)), np.empty(nn)
+        cp, cq, cm = np.empty(nn, np.int64), np.empty(nn, np.int64), np.empty(nn, np.int64)
+        px = np.empty(m)
+        py = np.empty(m)
+        pz = np.empty(m)
+        treg = np.empty((min(nn, BLOCK_TREE_MAX) if orc[0].shape[0] else 0, m))
+        tfa = np.empty(m)
+        bv = np.empty((1, block, block, block))
+        bok = np.empty((1, block, block, block), np.bool_)
+        bact = np.empty((1, block, block, block), np.bool_)
+        first = -1
+        for r in range(ch * per, min(nl, (ch + 1) * per)):
+            values[r] = outside
+            act[r] = False
+            known[r] = False
+            for e in range(lstart[r], lstart[r + 1]):
+                q = lblocks[e]
+                _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c, orc, reg, sj, sv, cn,
+                              co, cp, cq, cm, px, py, pz, bv, treg, tfa, 0)
+                for i in range(block):
+                    for j in range(block):
+                        for k in range(block):
+                            bok[0, i, j, k] = (imin[0] <= origins[q, 0] + i <= imax[0]
+                                               and imin[1] <= origins[q, 1] + j <= imax[1]
+                                               and imin[2] <= origins[q, 2] + k <= imax[2])
+                w = _mark_block(bv, bok, 0, h, band, bact)
+                if w >= 0 and (first < 0 or q * m + w < first):
+                    first = q * m + w
+                oi, oj, ok = origins[q, 0] & 7, origins[q, 1] & 7, origins[q, 2] & 7
+                for i in range(block):
+                    for j in range(block):
+                        for k in range(block):
+                            if bok[0, i, j, k]:
+                                f = bv[0, i, j, k]
+                                if abs(f) > limit:
+                                    nclamp[ch] += 1
+                                    f = min(max(f, -limit), limit)
+                                values[r, oi + i, oj + j, ok + k] = f
+                                known[r, oi + i, oj + j, ok + k] = True
+                                nvalid[ch] += 1
+                            act[r, oi + i, oj + j, ok + k] = bact[0, i, j, k]
+        bad[ch] = first
+    worst = -1
+    for ch in range(nch):
+        if bad[ch] >= 0 and (worst < 0 or bad[ch] < worst):
+            worst = bad[ch]
+    return worst, nclamp.sum(), nvalid.sum()
 
 
 @njit(parallel=True, cache=True)

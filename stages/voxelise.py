@@ -12,7 +12,7 @@ from typing import Literal
 from pydantic import Field
 
 from pipeline.grid import frep_to_vdb
-from pipeline.voxelise import assemble, bricks_for, merge_samples, root_size_for, sample_blocks
+from pipeline.voxelise import assemble, bricks_for, merge_samples, root_size_for, sample_blocks, voxelise
 from stages.base import StageParams
 
 
@@ -29,10 +29,9 @@ def run(ctx, p: Params) -> dict:
 
         root = root_size_for(dom.dims, p.block)
         tasks = [(ref_of(job), lo, hi, root, p.band, p.block) for lo, hi in bricks_for(imin, imax, job.bricks, p.block)]
-        samples = merge_samples(ctx.map(sample_brick, tasks))
+        res = assemble(merge_samples(ctx.map(sample_brick, tasks)), imin, imax, h, p.band)
     else:
-        samples = sample_blocks(job.model, imin, imax, h, p.band, p.block, job.t, progress=ctx.progress)
-    res = assemble(samples, imin, imax, h, p.band)
+        res = voxelise(job.model, imin, imax, h, p.band, p.block, job.t, progress=ctx.progress)
     grid = frep_to_vdb(res.blocks, res.inside_boxes, "frep", outside_boxes=res.outside_boxes, domain=(imin, imax))
     grid.updateMetadata({**ctx.grid_metadata("voxelise", p), "band_voxels": float(p.band)})
     ctx.grids["frep"] = grid

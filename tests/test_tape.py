@@ -474,3 +474,40 @@ def test_constant_powers_match_numpy_for_huge_exponents(p) -> None:
         v = pt.evaluate_with(tape, np.linspace(lo[q], hi[q], 101))
         v = v[np.isfinite(v)]
         assert (v >= flo[q]).all() and (v <= fhi[q]).all(), (q, flo[q], fhi[q], v.min(), v.max())
+
+
+@pytest.mark.parametrize("model", [
+    "difference:\n  - superellipsoid: {radii: [1, 1, 1], exponents: [0.3, 0.3]}\n"
+    "  - box: {min: [-1.3, -0.02, -1.3], max: [1.3, 0.02, 1.3]}\nrfunc: r0",
+    "union:\n  - sphere: {center: [0.3, 0, 0], radius: 0.5}\n  - cylinder: {radius: 0.2, axis: z}\nrfunc: min_max",
+    'expr: "1e31 * (0.5 - x^2 - y^2 - z^2)"',  # values beyond FINITE_LIMIT: clamped and counted
+    "mesh",
+])
+def test_fused_leaves_equal_blocks_then_assembly(tmp_path, model) -> None:
+    """voxelise_tape (blocks evaluated, band-marked and written into their leaves in one compiled
+    pass) gives assemble(sample_blocks(...))'s leaves, known voxels' values, band, proven boxes and
+    statistics, on a domain whose low faces cut leaves and blocks."""
+    from pipeline.voxelise import assemble, sample_blocks, voxelise_tape
+    from tests.test_written_grids import _box_with_holes
+
+    if model == "mesh":
+        path = tmp_path / "holes.off"
+        _box_with_holes().export(str(path))
+        model = f"mesh: {{path: {path}, rfunc: min_max}}"
+    cfg = tmp_path / "m.yaml"
+    cfg.write_text(frep_config(model, res=37, lo=-1.13, hi=1.21))
+    job = load_job(cfg)
+    dom = job.domain
+    assert np.any(dom.index_min % 4)  # the low faces cut blocks
+    a = assemble(sample_blocks(job.model, dom.index_min, dom.index_max, dom.voxel_size, 2.5, 4, job.t),
+                 dom.index_min, dom.index_max, dom.voxel_size, 2.5)
+    b = voxelise_tape(pt.compile_model(job.model, job.t), dom.index_min, dom.index_max, dom.voxel_size, 2.5, 4)
+    np.testing.assert_array_equal(a.blocks.origins, b.blocks.origins)
+    np.testing.assert_array_equal(a.blocks.values.view(np.int32), b.blocks.values.view(np.int32))
+    np.testing.assert_array_equal(a.blocks.active, b.blocks.active)
+    assert a.blocks.background == b.blocks.background
+    np.testing.assert_array_equal(a.inside_boxes, b.inside_boxes)
+    np.testing.assert_array_equal(a.outside_boxes, b.outside_boxes)
+    same = {k: v for k, v in a.stats.items() if not k.endswith("seconds")}
+    assert same == {k: v for k, v in b.stats.items() if not k.endswith("seconds")}
+    assert a.stats["active_voxels"] > 0 and ("1e31" not in model or a.stats["values_clamped"] > 0)

@@ -128,8 +128,10 @@ def _axis_term(buf, sbuf, i, j, k, di, dj, dk, me, order2):
     if a1 == np.inf:
         return np.inf, 1.0
     # across the surface the unsigned distance has a kink but the signed one is smooth: use
-    # the signed value of a second neighbour on the other side
-    if s2 != me:
+    # the signed value of a second neighbour on the other side. An unknown one (inf; a ghost of
+    # an absent block reads as outside) stays unknown: negated it would pass the test below
+    # and make the axis term inf, dropping the known neighbour a1
+    if s2 != me and a2 != np.inf:
         a2 = -a2
     if order2 and a2 <= a1:
         return (4.0 * a1 - a2) / 3.0, 2.25

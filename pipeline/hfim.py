@@ -40,9 +40,9 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
-from pipeline.eikonal import SECOND_ORDER_VISITS, EikonalResult, solve_distance
-from pipeline.fim import EXCLUDED, FREE, FROZEN, upwind3
-from pipeline.grid import LEAF, linear_transform, vdb, write_blocks
+from pipeline.eikonal import SECOND_ORDER_VISITS, EikonalResult, block_neighbours27, solve_distance
+from pipeline.fim import EXCLUDED, FREE, FROZEN, fim, upwind3
+from pipeline.grid import LEAF, BlockGrid, linear_transform, vdb, write_blocks
 
 LEVEL_CELLS = (8, 128)  # cell edge in voxels of levels 1, 2: an OpenVDB leaf and an internal-node child
 
@@ -154,6 +154,43 @@ def node_fim(d, state, inside, spacing, limit, tol, order2, max_visits):
                 queue[tail] = q
                 tail = (tail + 1) % (n + 1)
     return updates, visits
+
+
+def lattice_fim(d, state, inside, spacing: float, tol: float, order2: bool, visits_per_block: int
+                ) -> tuple[int, int]:
+    """:func:`node_fim` (limit inf) by the block FIM of the fine solve (pipeline.fim.fim: 8^3
+    blocks of nodes, red-black waves on both cores, Gauss-Seidel sweeps inside a block) instead
+    of one node per list item on one core. The same Godunov update, in units of ``spacing`` (a
+    power of two: the scaling is exact); excluded nodes read as unknown, as node_fim reads them.
+    First order converges to the same fixed point (to ``tol``); second order is the same
+    non-monotone scheme, at most ``visits_per_block`` visits per block. In place; returns
+    (updates, block visits)."""
+    nbk = -(-np.array(d.shape) // LEAF)
+    live = _lattice_blocks(state != EXCLUDED, nbk, False).any(axis=(1, 2, 3))
+    where = np.argwhere(live.reshape(tuple(nbk)))
+    if len(where) == 0:
+        return 0, 0
+    sb = _lattice_blocks(state, nbk, EXCLUDED)[live]
+    db = _lattice_blocks(np.where(state == EXCLUDED, np.inf, d), nbk, np.inf)[live] / spacing
+    ib = _lattice_blocks(inside, nbk, False)[live]
+    grid = BlockGrid(1.0, 0.0, where * LEAF, np.zeros((len(where), 1, 1, 1), np.float32),
+                     np.zeros((len(where), 1, 1, 1), bool))
+    colour = (where.sum(axis=1) & 1).astype(np.int64)
+    seeds = np.flatnonzero((sb == FREE).reshape(len(sb), -1).any(axis=1)).astype(np.int64)
+    visits, updates, _, _ = fim(db, sb, ib, block_neighbours27(grid), colour, seeds, np.inf, tol / spacing, 64,
+                                order2, visits_per_block * len(db), np.inf)
+    free = np.argwhere(sb == FREE)  # (row, i, j, k) -> lattice node
+    node = where[free[:, 0]] * LEAF + free[:, 1:]
+    d[tuple(node.T)] = db[tuple(free.T)] * spacing
+    return int(updates), int(visits)
+
+
+def _lattice_blocks(a: np.ndarray, nbk: np.ndarray, fill) -> np.ndarray:
+    """(Bx*By*Bz, 8, 8, 8) blocks of a dense lattice padded with ``fill`` to whole blocks, in
+    C order of the block coordinates (boolean-index with a mask of the block lattice)."""
+    pad = tuple((0, int(n * LEAF - s)) for n, s in zip(nbk, a.shape, strict=True))
+    b = np.pad(a, pad, constant_values=fill).reshape(nbk[0], LEAF, nbk[1], LEAF, nbk[2], LEAF)
+    return np.ascontiguousarray(b.transpose(0, 2, 4, 1, 3, 5)).reshape(-1, LEAF, LEAF, LEAF)
 
 
 @njit(cache=True, inline="always")
@@ -351,11 +388,10 @@ def interior_tiles(fine: EikonalResult, domain_index_bounds, order: int = 2, tol
     state[todo] = FREE
     inside[todo] = True
     vals[todo] = np.inf
-    n_free = len(free)
-    up, _ = node_fim(vals, state, inside, float(cell), np.inf, tol * cell, False, 1 << 62)
+    # the block FIM over 8^3 blocks of nodes, both cores (node_fim: 1.5 -> 0.5 s at 1024^3)
+    up, _ = lattice_fim(vals, state, inside, float(cell), tol * cell, False, 1 << 40)
     if order == 2:
-        up2, _ = node_fim(vals, state, inside, float(cell), np.inf, tol * cell, True,
-                          SECOND_ORDER_VISITS * max(n_free, 1))
+        up2, _ = lattice_fim(vals, state, inside, float(cell), tol * cell, True, SECOND_ORDER_VISITS)
         up += up2
     d = vals[idx]
     h = float(fine.distance.voxel_size)

@@ -166,3 +166,48 @@ def test_close_band_activates_both_sides_of_every_sign_change():
     added = close_band(grid, known[rows])
     assert added == added_want > 0
     assert np.array_equal(grid.active, want[rows])
+
+
+def test_coalesced_boxes_fill_the_same_pruned_tree():
+    """coalesce_boxes: the same voxels as the boxes (random cells of a random octree, some
+    cut by a domain's faces), fewer boxes, and one fill per merged box gives, after prune,
+    the tree of one fill per box (node counts, values)."""
+    from pipeline.grid import coalesce_boxes
+
+    rng = np.random.default_rng(3)
+    boxes = []
+
+    def split(o, size):
+        if size > 2 and rng.random() < 0.6:
+            for d in np.ndindex(2, 2, 2):
+                split(o + np.array(d) * size // 2, size // 2)
+        elif rng.random() < 0.5:
+            boxes.append([o, o + size - 1])
+
+    split(np.array([-32, -32, -32]), 64)
+    b = np.array(boxes, np.int64)
+    b = b[np.all((b[:, 0] <= 30) & (b[:, 1] >= -29), axis=1)]
+    b = np.clip(b, -29, 30)  # the domain's faces cut some cells
+    merged = coalesce_boxes(b)
+    assert 0 < len(merged) < 0.6 * len(b)
+
+    def dense(bs):
+        out = np.zeros((64, 64, 64), np.int64)
+        for lo, hi in bs:
+            out[lo[0] + 32:hi[0] + 33, lo[1] + 32:hi[1] + 33, lo[2] + 32:hi[2] + 33] += 1
+        return out
+
+    assert np.array_equal(dense(merged), dense(b) > 0) and dense(merged).max() == 1
+
+    def tree(bs):
+        g = vdb.FloatGrid(-1.0)
+        g.copyFromArray(np.full((3, 3, 3), 0.5, np.float32), (-2, 5, 9))  # some active band
+        for lo, hi in bs:
+            g.fill(tuple(int(c) for c in lo), tuple(int(c) for c in hi), 1.0, False)
+        g.prune()
+        arr = np.zeros((64, 64, 64), np.float32)
+        g.copyToArray(arr, (-32, -32, -32))
+        return g.leafCount(), g.nonLeafCount(), g.activeVoxelCount(), arr
+
+    a, c = tree(b), tree(merged)
+    assert a[:3] == c[:3] and np.array_equal(a[3], c[3])

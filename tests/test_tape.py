@@ -511,3 +511,44 @@ def test_fused_leaves_equal_blocks_then_assembly(tmp_path, model) -> None:
     same = {k: v for k, v in a.stats.items() if not k.endswith("seconds")}
     assert same == {k: v for k, v in b.stats.items() if not k.endswith("seconds")}
     assert a.stats["active_voxels"] > 0 and ("1e31" not in model or a.stats["values_clamped"] > 0)
+
+
+def test_specialise_shares_unchanged_tapes(tmp_path) -> None:
+    """A box whose decisions change nothing points at its parent's clauses (the pool then starts
+    with the parents' pool): every box's tape has the clauses that specialising it alone gives,
+    and the final pool of the demo's r0 model is smaller than one copy per block."""
+    from pipeline import voxelise as vx
+
+    cfg = tmp_path / "m.yaml"
+    cfg.write_text(frep_config(
+        "difference:\n  - superellipsoid: {radii: [1, 1, 1], exponents: [0.3, 0.3]}\n"
+        "  - union:\n    - box: {min: [-1.3, -0.02, -1.3], max: [1.3, 0.02, 1.3]}\n"
+        "    - sphere: {center: [0.5, 0.5, 0], radius: 0.3}\n    rfunc: min_max\nrfunc: r0", res=48))
+    job = load_job(cfg)
+    calls = []
+    orig = pt.specialise
+
+    def spy(keep, tape_of, start, length, res, op, a, b, c, choff, choices):
+        out = orig(keep, tape_of, start, length, res, op, a, b, c, choff, choices)
+        calls.append(((keep, tape_of, start, length, res, op, a, b, c, choff, choices), out))
+        return out
+
+    vx.specialise = spy
+    try:
+        dom = job.domain
+        _, pool = vx.enumerate_cells_tape(pt.compile_model(job.model, job.t), dom.index_min, dom.index_max,
+                                          dom.voxel_size, 3.0, 4)
+    finally:
+        vx.specialise = orig
+    shared = 0
+    for args, (s, ln, r, op, a, b, c) in calls:
+        keep = args[0]
+        shared += int(len(op) < ln.sum() or np.any(s[1:] < s[:-1]))
+        for i in range(len(keep)):
+            one = orig(keep[i:i + 1], *args[1:])
+            assert ln[i] == one[1][0] and r[i] == one[2][0]
+            sl = slice(s[i], s[i] + ln[i])
+            for got, want in zip((op, a, b, c), one[3:], strict=True):
+                np.testing.assert_array_equal(got[sl], want)
+    assert shared > 0  # some level shared its parents' tapes
+    assert len(pool.op) < pool.length.sum()

@@ -538,8 +538,8 @@ def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, s
 def fill_tiles(grid, origins: np.ndarray, values: np.ndarray, cell: int = LEAF) -> None:
     """Active constant tiles of edge ``cell`` voxels (``grid.fill`` over whole leaves makes
     tiles); tiles that follow each other along z with the same value go in one call. The calls
-    take plain lists (0.5 us a call instead of 1.2 with NumPy scalars: at 2048^3 the demo's
-    interior is 7.6M tiles of distinct values)."""
+    take plain lists made a chunk at a time (1M tiles: 0.93 s instead of 1.49 with NumPy
+    scalars; at 2048^3 the demo's interior is 7.6M tiles of distinct values)."""
     o = np.asarray(origins, np.int64).reshape(-1, 3)
     v = np.asarray(values, np.float32).reshape(-1)
     if len(o) == 0:
@@ -552,9 +552,13 @@ def fill_tiles(grid, origins: np.ndarray, values: np.ndarray, cell: int = LEAF) 
     starts = np.flatnonzero(brk)
     ends = np.append(starts[1:], len(o)) - 1
     fill = grid.fill
-    for a, b, x in zip(o[starts].tolist(), (o[ends] + (cell - 1)).tolist(), v[starts].astype(float).tolist(),
-                       strict=True):
-        fill(a, b, x, True)
+    for c in range(0, len(starts), FILL_CHUNK):  # a chunk's lists at a time: 7.6M at once is ~2 GB of objects
+        s, e = starts[c:c + FILL_CHUNK], ends[c:c + FILL_CHUNK]
+        for a, b, x in zip(o[s].tolist(), (o[e] + (cell - 1)).tolist(), v[s].astype(float).tolist(), strict=True):
+            fill(a, b, x, True)
+
+
+FILL_CHUNK = 1 << 16
 
 
 def sample_distance(res: HierarchicalResult, ijk: np.ndarray) -> np.ndarray:

@@ -156,9 +156,9 @@ def node_fim(d, state, inside, spacing, limit, tol, order2, max_visits):
     return updates, visits
 
 
-def lattice_fim(d, state, inside, spacing: float, tol: float, order2: bool, visits_per_block: int
-                ) -> tuple[int, int]:
-    """:func:`node_fim` (limit inf) by the block FIM of the fine solve (pipeline.fim.fim: 8^3
+def lattice_fim(d, state, inside, spacing: float, tol: float, order2: bool, visits_per_block: int,
+                limit: float = np.inf) -> tuple[int, int]:
+    """:func:`node_fim` by the block FIM of the fine solve (pipeline.fim.fim: 8^3
     blocks of nodes, red-black waves on both cores, Gauss-Seidel sweeps inside a block) instead
     of one node per list item on one core. The same Godunov update, in units of ``spacing`` (a
     power of two: the scaling is exact); excluded nodes read as unknown, as node_fim reads them.
@@ -173,8 +173,9 @@ def lattice_fim(d, state, inside, spacing: float, tol: float, order2: bool, visi
                      np.zeros((len(where), 1, 1, 1), bool))
     colour = (where.sum(axis=1) & 1).astype(np.int64)
     seeds = np.flatnonzero((sb == FREE).reshape(len(sb), -1).any(axis=1)).astype(np.int64)
-    visits, updates, _, _ = fim(db, sb, ib, block_neighbours27(grid), colour, seeds, np.inf, tol / spacing, 64,
-                                order2, visits_per_block * len(db), np.inf)
+    cap = limit / spacing  # node_fim's limit holds on both sides of the surface
+    visits, updates, _, _ = fim(db, sb, ib, block_neighbours27(grid), colour, seeds, cap, tol / spacing, 64,
+                                order2, visits_per_block * len(db), cap)
     _scatter_free(d, db, sb, where, spacing)
     return int(updates), int(visits)
 
@@ -362,7 +363,7 @@ def hierarchical_distance(
         limit = np.inf if n == len(levels) - 1 else float(coarse_distance_vox)
         state = np.where(frozen, FROZEN, FREE).astype(np.int8)
         seeded = vals.copy()
-        up, _ = node_fim(vals, state, inside, float(cell), limit, tol * cell, False, 1 << 62)
+        up, _ = lattice_fim(vals, state, inside, float(cell), tol * cell, False, 1 << 40, limit)
         if n < len(levels) - 1:
             # every next-level cell this level reached within its limit is solved completely
             # here; the next level keeps only the cells wholly beyond the reach
@@ -371,11 +372,10 @@ def hierarchical_distance(
             reached[tuple(parent[np.isfinite(vals)].T)] = True
             state[~reached[tuple(np.moveaxis(parent, -1, 0))]] = EXCLUDED
             vals[...] = seeded
-            up2, _ = node_fim(vals, state, inside, float(cell), np.inf, tol * cell, False, 1 << 62)
+            up2, _ = lattice_fim(vals, state, inside, float(cell), tol * cell, False, 1 << 40)
             up += up2
         if order == 2:  # second order from the first-order fixed point, as the fine solve
-            up2, _ = node_fim(vals, state, inside, float(cell), np.inf, tol * cell, True,
-                              SECOND_ORDER_VISITS * max(int(np.isfinite(vals).sum()), 1))
+            up2, _ = lattice_fim(vals, state, inside, float(cell), tol * cell, True, SECOND_ORDER_VISITS)
             up += up2
         updates.append(int(up))
         out.append(CoarseLevel(cell, lat_lo, vals, frozen, limit, inside))

@@ -482,14 +482,23 @@ def _assemble_children(psigns, new, from_parent, even, odd, child_idx):
 def _affine(model: Node, lo: np.ndarray, hi: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
     """Revised affine bounds of the model over boxes (section 3.2): compiled over the model's tape
     when it has one (pipeline.tape_affine: the same rules, ~4x faster than the node-by-node
-    NumPy forms), else ``model.bound`` a chunk at a time."""
-    tape = compile_model(model, t)
+    NumPy forms), else ``model.bound`` a chunk at a time. A model whose class defines its own
+    ``bound`` (not the formula's RAA of pipeline.nodes.base) keeps it: the tape knows only the
+    formula."""
+    tape = compile_model(model, t) if not _own_bound(model) else None
     if tape is not None:
         return affine_bounds(tape, lo, hi)
     flo, fhi = np.empty(len(lo)), np.empty(len(lo))
     for s in range(0, len(lo), BOUND_CHUNK):
         flo[s:s + BOUND_CHUNK], fhi[s:s + BOUND_CHUNK] = model.bound(lo[s:s + BOUND_CHUNK], hi[s:s + BOUND_CHUNK], t)
     return flo, fhi
+
+
+def _own_bound(model) -> bool:
+    """Whether the model's class overrides Node.bound (the bound of the root is what
+    ``model.bound`` returns; children's ``bound`` methods are never called by it)."""
+    owner = next((c for c in type(model).__mro__ if "bound" in c.__dict__), None)
+    return owner is not None and owner.__module__ != "pipeline.nodes.base"
 
 
 def _in_region(coords: np.ndarray, level: int, origin, size, rlo, rhi) -> np.ndarray:

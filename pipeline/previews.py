@@ -135,7 +135,10 @@ def _draw_contours(ax: Any, sl: Slice, kind: str, norm: mcolors.Normalize, ref: 
     H, V = np.meshgrid(sl.h, sl.v, indexing="ij")
     if kind in ("signed", "sequential") and min(sl.values.shape) > 1:
         levels = isolevels(kind, norm.vmin, norm.vmax)
-        ax.contour(H, V, sl.values, levels=levels, colors="0.35", linewidths=0.5, alpha=0.7)
+        # only the levels the slice crosses (matplotlib warns on a slice that crosses none)
+        levels = levels[(levels > np.nanmin(sl.values)) & (levels < np.nanmax(sl.values))]
+        if len(levels):
+            ax.contour(H, V, sl.values, levels=levels, colors="0.35", linewidths=0.5, alpha=0.7)
     if kind == "signed" and sl.values.min() < 0 < sl.values.max():
         ax.contour(H, V, sl.values, levels=[0.0], colors="black", linewidths=1.6)
     elif ref is not None and ref.values.min() < ref_iso < ref.values.max():

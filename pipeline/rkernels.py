@@ -1,4 +1,5 @@
-"""The R-conjunctions compiled for kernels (Numba), the scalar forms of pipeline.rfunctions.
+"""The R-conjunctions and the compression compiled for kernels (Numba), the scalar forms of
+pipeline.rfunctions.
 
 Shared by the tape's clause arithmetic (pipeline.tape) and the separated pieces of the
 components stage (pipeline.components), in a module of their own so that the Numba cache
@@ -32,3 +33,13 @@ def sardf_and(f1, f2, k):
     if abs(u) >= w:
         return min(f1, f2)
     return 0.5 * (f1 + f2 - (u * u + w * w) / (2.0 * w))
+
+
+@njit(cache=True, inline="always")
+def compress(f, cc):
+    """The scalar form of rfunctions.compress: f for |f| <= cc, sign(f) cc (1 + ln(|f| / cc)) beyond."""
+    a = abs(f)
+    if not a > cc:
+        return f
+    r = cc * (1.0 + math.log(a / cc))
+    return r if f > 0 else -r

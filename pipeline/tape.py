@@ -49,7 +49,7 @@ from pipeline.bsp_minmax import (
     surface_bvh,
     tree_depth,
 )
-from pipeline.rkernels import r0_and, sardf_and
+from pipeline.rkernels import compress, r0_and, sardf_and
 
 # --- opcodes ------------------------------------------------------------------------------------
 X, Y, Z, CONST, ADD, SUB, MUL, DIV, NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, MIN, MAX, R0AND, \
@@ -419,15 +419,6 @@ def _compact(op, a, b, c, res):
 
 
 @njit(cache=True, inline="always")
-def _compress(f, cc):
-    a = abs(f)
-    if not a > cc:
-        return f
-    r = cc * (1.0 + math.log(a / cc))
-    return r if f > 0 else -r
-
-
-@njit(cache=True, inline="always")
 def _powc(v, p):
     if v < 0.0 and p != np.floor(p):  # np.floor: math.floor is an int64 in Numba (overflows at 1e20)
         return math.nan
@@ -494,7 +485,7 @@ def _apply(op, va, vb, c):
     if op == SARDFAND:
         return sardf_and(va, vb, c)
     if op == COMPRESS:
-        return _compress(va, c)
+        return compress(va, c)
     return c  # CONST
 
 
@@ -617,25 +608,30 @@ def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, orc
     n = origins.shape[0]
     m = block * block * block
     out = np.empty((n, block, block, block))
-    nn = max(orc[0].shape[0], 1)
     # scratch once per chunk of blocks; at most 64 chunks, since a mesh's scratch tree has room
     # for its whole tree (150 MB for 1.3M faces) and must not be allocated per few blocks
     per = max(16, (n + 63) // 64)
     for ch in prange((n + per - 1) // per):
-        reg = np.empty((max(maxlen, 1), m))
-        sj = np.empty((3, odepth + 2), np.int64)
-        sv = np.empty((4, odepth + 2))
-        cn, co = np.empty((nn, 3)), np.empty(nn)
-        cp, cq, cm = np.empty(nn, np.int64), np.empty(nn, np.int64), np.empty(nn, np.int64)
-        px = np.empty(m)
-        py = np.empty(m)
-        pz = np.empty(m)
-        treg = np.empty((min(nn, BLOCK_TREE_MAX) if orc[0].shape[0] else 0, m))  # tree-major mesh registers
-        tfa = np.empty(m)
+        reg, sj, sv, cn, co, cp, cq, cm, px, py, pz, treg, tfa = _block_scratch(maxlen, m, odepth, orc)
         for q in range(ch * per, min(n, (ch + 1) * per)):
             _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c, orc, reg, sj, sv, cn, co,
                           cp, cq, cm, px, py, pz, out, treg, tfa)
     return out
+
+
+@njit(cache=True, inline="always")
+def _block_scratch(maxlen, m, odepth, orc):
+    """One thread's scratch for :func:`_block_values` on blocks of m voxels: clause registers,
+    the mesh walk's stacks, the block specialisation's node arrays, the voxel coordinates, the
+    tree-major mesh registers and their flags."""
+    nn = max(orc[0].shape[0], 1)
+    reg = np.empty((max(maxlen, 1), m))
+    sj = np.empty((3, odepth + 2), np.int64)
+    sv = np.empty((4, odepth + 2))
+    cn, co = np.empty((nn, 3)), np.empty(nn)
+    cp, cq, cm = np.empty(nn, np.int64), np.empty(nn, np.int64), np.empty(nn, np.int64)
+    treg = np.empty((min(nn, BLOCK_TREE_MAX) if orc[0].shape[0] else 0, m))  # tree-major mesh registers
+    return reg, sj, sv, cn, co, cp, cq, cm, np.empty(m), np.empty(m), np.empty(m), treg, np.empty(m)
 
 
 @njit(cache=True)
@@ -735,23 +731,13 @@ def eval_mark_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c
     order, or -1; how many values were clamped; how many voxels were evaluated in the domain)."""
     nl = lstart.shape[0] - 1
     m = block * block * block
-    nn = max(orc[0].shape[0], 1)
     per = max(4, (nl + 63) // 64)
     nch = (nl + per - 1) // per
     bad = np.full(nch, -1, np.int64)
     nclamp = np.zeros(nch, np.int64)
     nvalid = np.zeros(nch, np.int64)
     for ch in prange(nch):
-        reg = np.empty((max(maxlen, 1), m))
-        sj = np.empty((3, odepth + 2), np.int64)
-        sv = np.empty((4, odepth + 2))
-        cn, co = np.empty((nn, 3)), np.empty(nn)
-        cp, cq, cm = np.empty(nn, np.int64), np.empty(nn, np.int64), np.empty(nn, np.int64)
-        px = np.empty(m)
-        py = np.empty(m)
-        pz = np.empty(m)
-        treg = np.empty((min(nn, BLOCK_TREE_MAX) if orc[0].shape[0] else 0, m))
-        tfa = np.empty(m)
+        reg, sj, sv, cn, co, cp, cq, cm, px, py, pz, treg, tfa = _block_scratch(maxlen, m, odepth, orc)
         bv = np.empty((1, block, block, block))
         bok = np.empty((1, block, block, block), np.bool_)
         bact = np.empty((1, block, block, block), np.bool_)
@@ -1061,7 +1047,7 @@ def _interval(o, alo, ahi, blo, bhi, c):
     if o == SARDFAND:
         return sardf_and(alo, blo, c), sardf_and(ahi, bhi, c), 0
     if o == COMPRESS:
-        return _compress(alo, c), _compress(ahi, c), 0
+        return compress(alo, c), compress(ahi, c), 0
     return c, c, 0
 
 

@@ -32,7 +32,7 @@ inclusion property survives floating point. Non-finite values: a form whose cent
 not finite, or whose error is NaN, becomes the unbounded form (0, 0, 0, 0, inf), never a NaN that
 would hide a bound; an unbounded operand makes every non-constant result unbounded.
 
-Numba cache: the kernels call bsp_minmax.box_bound and rkernels.r0_and (both in
+Numba cache: the kernels call bsp_minmax.box_bound and rkernels.r0_and and rkernels.compress (all in
 pipeline.KERNEL_PROVIDERS) and nothing compiled of pipeline.tape. The opcodes are this module's
 own constants, checked against pipeline.tape's at import: a renumbering there fails loudly
 instead of leaving stale machine code in the cache.
@@ -48,7 +48,7 @@ from numba import njit, prange
 
 from pipeline import tape as _tp
 from pipeline.bsp_minmax import box_bound
-from pipeline.rkernels import r0_and
+from pipeline.rkernels import compress, r0_and
 
 # --- opcodes (pipeline.tape's; checked below) --------------------------------------------------------
 X, Y, Z, CONST, ADD, SUB, MUL, DIV, NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, MIN, MAX, R0AND, \
@@ -405,15 +405,6 @@ def _sardf(a0, a1, a2, a3, a4, b0, b1, b2, b3, b4, k):
 
 
 @_jit()
-def _compress(f, cc):
-    a = abs(f)
-    if not a > cc:
-        return f
-    r = cc * (1.0 + math.log(a / cc))
-    return r if f > 0 else -r
-
-
-@_jit()
 def _compress_form(r0, r1, r2, r3, r4, scale):
     """ops.compress_form: the form where its range lies within +-scale, else the interval of
     the compressed ends (compress is increasing), widened by 1e-12 for rounding."""
@@ -422,8 +413,8 @@ def _compress_form(r0, r1, r2, r3, r4, scale):
     lo, hi = _interval(r0, r1, r2, r3, r4)
     if not (lo < -scale or hi > scale):
         return r0, r1, r2, r3, r4
-    clo = _compress(lo, scale) * (1.0 + math.copysign(1e-12, -lo))
-    chi = _compress(hi, scale) * (1.0 + math.copysign(1e-12, hi))
+    clo = compress(lo, scale) * (1.0 + math.copysign(1e-12, -lo))
+    chi = compress(hi, scale) * (1.0 + math.copysign(1e-12, hi))
     if clo != clo:
         clo = -_INF
     if chi != chi:

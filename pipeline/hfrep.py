@@ -184,12 +184,14 @@ class HFRepField:
     __call__ = evaluate
 
 
-def density_grid(res, ramp: float):
+def density_grid(res, ramp: float, tiles: tuple[np.ndarray, np.ndarray] | None = None):
     """Fog volume: 1 inside deeper than ``ramp``, falling linearly to 0 at the surface. The
     inside voxels a limited fine solve left unsolved (``res.deep_rows``, deeper than the limit,
     which is at least the ramp) are 1. Blocks that are 1 throughout are written as active
     tiles (what ``prune`` would make of them), the others as leaves; only those leaves' values
-    are ever held (a first pass finds the blocks that are 1 throughout)."""
+    are ever held (a first pass finds the blocks that are 1 throughout). ``tiles``: (origins,
+    values) of more leaf tiles (the coarse interior), written with those of 1 in one pass, so
+    that solid regions of 1 become a few boxes (hfim.fill_tiles)."""
     d = res.distance
     n = len(d.origins)
     deep = np.full(n, -1, np.int64)  # row of each block in deep_mask, -1 for none
@@ -209,7 +211,11 @@ def density_grid(res, ramp: float):
     write_batched(grid, d.origins[leaves], fill)
     from pipeline.hfim import fill_tiles
 
-    fill_tiles(grid, d.origins[ones], np.ones(int(ones.sum())))
+    origins, values = d.origins[ones], np.ones(int(ones.sum()), np.float32)
+    if tiles is not None:
+        origins = np.concatenate([origins, np.asarray(tiles[0], np.int64).reshape(-1, 3)])
+        values = np.concatenate([values, np.asarray(tiles[1], np.float32).reshape(-1)])
+    fill_tiles(grid, origins, values, merge_value=1.0)
     grid.prune()
     return grid
 

@@ -149,6 +149,7 @@ def _keep_pieces(ctx, found: cc.Components, labels: np.ndarray, kept: list[int])
     grid.updateMetadata({k: v for k, v in meta.items() if k.startswith("frepvdb") or k == "band_voxels"})
     ctx.grids["frep"] = grid
     ctx.blocks["frep"] = new
+    ctx.data["frep_signed"] = False  # inactive voxels of a removed piece may still hold + values
     ctx.data["inside_boxes"] = boxes
     return np.where(keep_mask, labels, 0)[rows]
 

@@ -85,16 +85,17 @@ def run(ctx, p: Params) -> dict:
     h, band = dom.voxel_size, float(ctx.data["band"])
     maxd = 10 * h if p.max_distance is None else p.max_distance
     # with bricks, the (fine) FIM runs per brick on the workers, continued across brick faces
-    bricks = {"brick": ctx.job.bricks, "map_fn": ctx.map}
+    # voxelise's leaves hold values of the right sign in every voxel: no flood fill of the band
+    solve_kw = {"brick": ctx.job.bricks, "map_fn": ctx.map, "signed_values": bool(ctx.data.get("frep_signed"))}
     if p.solver == "hfim":  # fine solve out to max_distance (default 16 voxels), coarse cells beyond
         from pipeline.hfim import hierarchical_distance
         reach = 16.0 if p.max_distance in (None, "domain") else p.max_distance / h
         hres = hierarchical_distance(frep, (dom.index_min, dom.index_max), ctx.data["inside_boxes"],
-                                     fine_distance_vox=reach, order=p.order, **bricks)
+                                     fine_distance_vox=reach, order=p.order, **solve_kw)
         res = hres.fine
     else:
         res = solve_distance(frep, maxd, (dom.index_min, dom.index_max), ctx.data["inside_boxes"], order=p.order,
-                             inside_distance=_inside_distance(p, maxd, band * h), **bricks)
+                             inside_distance=_inside_distance(p, maxd, band * h), **solve_kw)
     meta = ctx.grid_metadata("hfrep", p)
     hf = hfrep_blocks(frep, res, p.step, p.slope)
     for name in ("surface", "hfrep", "density"):  # keep these first in the file, attributes after
@@ -117,9 +118,8 @@ def run(ctx, p: Params) -> dict:
         from pipeline.hfim import fill_tiles
         fill_tiles(hgrid, tiles[0], tiles[1])
     if p.density:
-        ctx.grids["density"] = density_grid(res, band * h)
-        if tiles is not None:
-            fill_tiles(ctx.grids["density"], tiles[0], np.clip(tiles[1] / (band * h), 0.0, 1.0))
+        coarse = None if tiles is None else (tiles[0], np.clip(tiles[1] / (band * h), 0.0, 1.0))
+        ctx.grids["density"] = density_grid(res, band * h, coarse)
         ctx.grids["density"].updateMetadata(meta)
     else:
         del ctx.grids["density"]

@@ -38,6 +38,9 @@ def run(ctx, p: Params) -> dict:
     ctx.blocks["frep"] = res.blocks
     ctx.data["inside_boxes"] = res.inside_boxes
     ctx.data["band"] = p.band
+    # every voxel of the leaves holds a value of its true sign (evaluated, or +-background by its
+    # cell's proof; close_band puts each sign change in the band): hfrep needs no flood fill
+    ctx.data["frep_signed"] = True
     return res.stats
 
 

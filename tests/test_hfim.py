@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.eikonal import solve_distance
 from pipeline.grid import LEAF, vdb
-from pipeline.hfim import hierarchical_distance, hierarchical_grid, stored_values
+from pipeline.hfim import fill_tiles, hierarchical_distance, hierarchical_grid, stored_values
 from tests.test_eikonal import band_grid, box_of, sphere_of
 
 HALF = np.array([0.2, 0.15, 0.18])
@@ -239,3 +241,26 @@ def test_lattice_fim_solves_what_node_fim_solves(seed: int, holes: bool) -> None
     lattice_fim(b2, state, inside, 8.0, 8e-6, True, 50)
     assert np.abs(a[ok] - b2[ok]).max() < 1e-3 and np.array_equal(b2[~free], d[~free])
     assert np.abs(b2[ok] - exact[ok]).mean() < 0.5 * np.abs(b[ok] - exact[ok]).mean()
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), size=st.integers(1, 2000), extent=st.integers(1, 12),
+       merge=st.sampled_from([None, 1.0, 0.5]))
+def test_fill_tiles_equals_one_fill_per_tile(seed, size, extent, merge) -> None:
+    """Runs along z and merged boxes of ``merge_value`` write exactly the tiles given, values
+    and active states, in any input order (read back voxel by voxel over the whole box)."""
+    rng = np.random.default_rng(seed)
+    lat = np.unique(rng.integers(0, extent, size=(size, 3)), axis=0)
+    origins = lat * 8 - 40
+    values = np.where(rng.random(len(lat)) < 0.6, 1.0, rng.integers(0, 3, len(lat)) * 0.5).astype(np.float32)
+    ref, got = vdb.FloatGrid(-7.0), vdb.FloatGrid(-7.0)
+    for a, x in zip(origins.tolist(), values.tolist(), strict=True):
+        ref.fill(a, [c + 7 for c in a], x, True)
+    perm = rng.permutation(len(lat))
+    fill_tiles(got, origins[perm], values[perm], merge_value=merge)
+    n = 8 * extent + 16
+    a, b = np.zeros((n, n, n), np.float32), np.zeros((n, n, n), np.float32)
+    ref.copyToArray(a, ijk=(-48, -48, -48))
+    got.copyToArray(b, ijk=(-48, -48, -48))
+    assert np.array_equal(a, b)
+    assert got.activeVoxelCount() == ref.activeVoxelCount() == 512 * len(lat)

@@ -306,7 +306,8 @@ def _fine_nodes(fine: EikonalResult, lat_lo: np.ndarray, shape, centre: bool = F
     vals[idx] = centre[full]
     frozen[idx] = True
     inside = np.zeros(shape, bool)
-    inside[tuple(p[ok].T)] = fine.inside[ok][:, 3:5, 3:5, 3:5].reshape(int(ok.sum()), -1).mean(axis=1) > 0.5
+    # the centre voxels first, then the rows: no copy of the whole inside mask (560 MB at 2048^3)
+    inside[tuple(p[ok].T)] = fine.inside[:, 3:5, 3:5, 3:5][ok].reshape(int(ok.sum()), -1).mean(axis=1) > 0.5
     return vals, frozen, inside
 
 

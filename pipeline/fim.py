@@ -35,6 +35,7 @@ FREE, FROZEN, EXCLUDED = 0, 1, 2
 PARALLEL_BLOCKS = 4096  # blocks (2 M voxels) from which the FIM runs its waves on all threads
 FACE_ROWS = np.array([4, 22, 10, 16, 12, 14])  # nbr27 rows of -x, +x, -y, +y, -z, +z
 QUADRIC_RESIDUAL = 0.02  # voxels: largest miss of the quadratic model at its stencil corners
+REL32 = 2.0**-22  # two float32 units relative: changes below them are rounding, not progress
 
 
 @njit(cache=True, inline="always")
@@ -144,7 +145,8 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
     """Gauss-Seidel sweeps (alternating the 8 orderings) until block b converges.
 
     First order accepts only decreases (monotone scheme from above); second order accepts
-    any change larger than ``tol``. A value above ``limit`` (outside voxels) or ``limit_in``
+    any change larger than ``tol`` (plus two float32 units: values are rounded to float32,
+    the distance array's type, as they are computed). A value above ``limit`` (outside voxels) or ``limit_in``
     (inside voxels) is never accepted. Returns (bitmask of faces whose ghost layers changed,
     voxel updates, sweeps).
 
@@ -201,11 +203,16 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
                     u = upwind3(bx, wx, by, wy, bz, wz)
                     if u > (limit_in if me else limit):
                         continue
+                    # values are kept as float32 (what d stores): a block then stores exactly
+                    # what it computed, and a change below two float32 units is no change, so
+                    # rounding cannot move a voxel back and forth between visits
+                    u = np.float64(np.float32(u))
+                    thr = tol + REL32 * u
                     old = buf[i + 2, j + 2, k + 2]
                     if order2:
-                        if not abs(u - old) > tol:  # also catches inf - inf
+                        if not abs(u - old) > thr:
                             continue
-                    elif not u < old - tol:
+                    elif not u < old - thr:
                         continue
                     buf[i + 2, j + 2, k + 2] = u
                     updates += 1

@@ -682,3 +682,44 @@ def test_finest_kinds_split_by_the_control_range() -> None:
     assert np.array_equal(kinds[cc.INSIDE][0], cells[npos == 8]) and (kinds[cc.INSIDE][1] == 1).all()
     mixed = (npos > 0) & (npos < 8)
     assert np.array_equal(kinds[cc.BORDER][0], cells[mixed]) and np.allclose(kinds[cc.BORDER][1], npos[mixed] / 8)
+
+
+KEEP_THEN_HFREP = """name: keep
+domain: {bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 96}
+model:
+  union:
+    - sphere: {center: [-0.3, 0, 0], radius: 0.5}
+    - sphere: {center: [0.41, 0.03, 0.01], radius: 0.17}
+stages:
+  - voxelise: {band: 1}
+  - components: {keep: largest}
+  - hfrep: {}
+  - export: {vdb: true}
+"""
+
+
+def test_keep_then_hfrep_every_written_voxel_on_the_kept_side(tmp_path):
+    """After ``keep`` removed a piece two voxels from the kept one (leaves shared: 158 of the
+    removed piece's inside voxels stay inactive, with positive values, in the kept leaves), every
+    grid read back from the .vdb puts each voxel of the domain, active, inactive or tile, farther
+    than 1.5 voxels from the kept sphere on its side (hfrep then floods the band's signs:
+    voxelise's values no longer all carry them)."""
+    cfg = tmp_path / "keep.yaml"
+    cfg.write_text(KEEP_THEN_HFREP)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+    n, h = 97, 2.0 / 96
+    ijk = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3) - 48
+    kept = 0.5 - np.linalg.norm(ijk * h - np.array([-0.3, 0, 0]), axis=1)
+    m = json.loads((tmp_path / "out" / "keep" / "manifest.json").read_text())
+    assert m["components"]["count"] == 2 and m["components"]["kept"] == [1]
+    removed = 0.17 - np.linalg.norm(ijk * h - np.array([0.41, 0.03, 0.01]), axis=1)
+    assert (removed > 1.5 * h).sum() > 500  # the removed piece's voxels are checked too
+    for name, positive_inside, margin in (("frep", True, 1.5), ("hfrep", True, 1.5), ("surface", False, 1.5),
+                                          ("density", True, 4.0)):
+        g = vdb.read(str(tmp_path / "out" / "keep" / "keep.vdb"), name)
+        arr = np.zeros((n, n, n), np.float32)
+        g.copyToArray(arr, ijk=(-48, -48, -48))
+        v = arr.reshape(-1)
+        written_inside = (v > 0.5) if name == "density" else ((v > 0) if positive_inside else (v < 0))
+        far = np.abs(kept) > margin * h
+        assert np.array_equal(written_inside[far], kept[far] > 0), name

@@ -89,16 +89,32 @@ def unique_keys(keys: np.ndarray, inverse: bool = True) -> tuple[np.ndarray, np.
     keys = np.asarray(keys, np.int64).reshape(-1)
     if len(keys) == 0:
         return keys.copy(), np.zeros(0, np.int64)
-    order = np.argsort(keys, kind="stable") if inverse else None
-    s = keys[order] if inverse else np.sort(keys, kind="stable")
-    first = np.empty(len(s), bool)
-    first[0] = True
-    np.not_equal(s[1:], s[:-1], out=first[1:])
     if not inverse:
+        s = np.sort(keys, kind="stable")
+        first = np.empty(len(s), bool)
+        first[0] = True
+        np.not_equal(s[1:], s[:-1], out=first[1:])
         return s[first], None
-    inv = np.empty(len(keys), np.int64)
-    inv[order] = np.cumsum(first) - 1
-    return s[first], inv
+    return _ranks(keys, np.argsort(keys, kind="stable"))
+
+
+@numba.njit(cache=True)
+def _ranks(keys, order):
+    """(unique keys, inverse) of ``keys`` given their stable sorting order, in one pass (the
+    gathered, compared, summed and scattered temporaries of 10M keys took ~0.4 s at 1024^3)."""
+    n = order.shape[0]
+    uniq = np.empty(n, np.int64)
+    inv = np.empty(n, np.int64)
+    u = -1
+    prev = 0
+    for i in range(n):
+        k = keys[order[i]]
+        if i == 0 or k != prev:
+            u += 1
+            uniq[u] = k
+            prev = k
+        inv[order[i]] = u
+    return uniq[:u + 1].copy(), inv
 
 
 def unpack(keys: np.ndarray) -> np.ndarray:
@@ -664,8 +680,9 @@ def enumerate_in_brick(model: Node, origin, size: float, depth: int, t: float = 
         ok = _in_region(cells, lv, origin, size, rlo, rhi)
         if brick is not None:
             ok &= _meets(cells, lv, depth, brick)
-        cells = cells[ok]
-        signs = signs[ok] if continuation else None
+        if not ok.all():  # (at the finest level of the demo at 1024^3: 10M cells, all in the region)
+            cells = cells[ok]
+            signs = signs[ok] if continuation else None
         if len(cells) == 0:
             break
         st["cells_visited"] += len(cells)

@@ -36,6 +36,20 @@ def pack_keys(ijk: np.ndarray) -> np.ndarray:
     return (a[:, 0] << 42) | (a[:, 1] << 21) | a[:, 2]
 
 
+def merge_sorted(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of two (N,3) coordinate lists, each in :func:`pack_keys` order, in one list in
+    that order (what a stable sort of their concatenation gives, in linear time), and the row
+    of each of ``b``'s in it (to place values that go with them)."""
+    a, b = np.asarray(a, np.int64).reshape(-1, 3), np.asarray(b, np.int64).reshape(-1, 3)
+    pos = np.searchsorted(pack_keys(a), pack_keys(b), side="right") + np.arange(len(b))  # after equal keys of a
+    out = np.empty((len(a) + len(b), 3), np.int64)
+    mask = np.ones(len(out), bool)
+    mask[pos] = False
+    out[pos] = b
+    out[mask] = a
+    return out, pos
+
+
 @dataclass
 class BlockGrid:
     """Sparse float grid as 8^3 blocks: ``origins`` (L,3), ``values`` (L,8,8,8), ``active`` (L,8,8,8)."""

@@ -31,7 +31,7 @@ from scipy.special import expit
 
 from pipeline.blockwrite import mapped_empty, write_batched, write_leaves
 from pipeline.eikonal import EikonalResult
-from pipeline.grid import LEAF, BlockGrid, linear_transform, negate_active, vdb
+from pipeline.grid import LEAF, BlockGrid, linear_transform, merge_sorted, negate_active, pack_keys, vdb
 from pipeline.spline import TricubicSpline
 
 STEPS = ("sigmoid", "tanh", "rational")
@@ -211,10 +211,18 @@ def density_grid(res, ramp: float, tiles: tuple[np.ndarray, np.ndarray] | None =
     write_batched(grid, d.origins[leaves], fill)
     from pipeline.hfim import fill_tiles
 
-    origins, values = d.origins[ones], np.ones(int(ones.sum()), np.float32)
-    if tiles is not None:
-        origins = np.concatenate([origins, np.asarray(tiles[0], np.int64).reshape(-1, 3)])
-        values = np.concatenate([values, np.asarray(tiles[1], np.float32).reshape(-1)])
+    origins = d.origins[ones]
+    if tiles is not None:  # both lists in key order: merged, not sorted (8.6M rows at 2048^3)
+        t_o, t_v = np.asarray(tiles[0], np.int64).reshape(-1, 3), np.asarray(tiles[1], np.float32).reshape(-1)
+        keys = pack_keys(t_o)
+        if len(keys) > 1 and not (keys[1:] > keys[:-1]).all():  # interior_tiles gives them in order
+            order = np.argsort(keys, kind="stable")
+            t_o, t_v = t_o[order], t_v[order]
+        origins, pos = merge_sorted(origins, t_o)
+        values = np.ones(len(origins), np.float32)
+        values[pos] = t_v
+    else:
+        values = np.ones(len(origins), np.float32)
     fill_tiles(grid, origins, values, merge_value=1.0)
     grid.prune()
     return grid

@@ -13,8 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.config import _Ctx, build_node
-from pipeline.eikonal import _merge_sorted, solve_distance
-from pipeline.grid import pack_keys
+from pipeline.eikonal import solve_distance
+from pipeline.grid import merge_sorted, pack_keys
 from pipeline.voxelise import voxelise
 
 
@@ -73,4 +73,9 @@ def test_merge_sorted_equals_a_stable_sort(seed, na, nb, span) -> None:
 
     a, b = sorted_origins(na), sorted_origins(nb)
     both = np.concatenate([a, b])
-    assert np.array_equal(_merge_sorted(a, b), both[np.argsort(pack_keys(both), kind="stable")])
+    order = np.argsort(pack_keys(both), kind="stable")
+    merged, pos = merge_sorted(a, b)
+    assert np.array_equal(merged, both[order])
+    tag = np.zeros(len(both), int)  # b's rows land where the stable sort puts them
+    tag[pos] = np.arange(1, nb + 1)
+    assert np.array_equal(tag, np.where(order >= na, order - na + 1, 0))

@@ -92,3 +92,19 @@ def test_e2e_memory_limit_is_reported(tmp_path: Path) -> None:
     row = scale.run_e2e(tmp_path, 16, max_rss_gib=0.1)
     assert row["done"] is None
     assert row["failure"].startswith("stopped: RSS") and "limit of 0.1 GiB" in row["failure"]
+
+
+def test_median_row_takes_each_stage_median_and_range() -> None:
+    def run(vox: float, hf: float, done: bool = True) -> dict:
+        stages = [{"stage": "voxelise", "seconds": vox, "peak_rss_mib": 10 * vox, "finished": True},
+                  {"stage": "hfrep", "seconds": hf, "peak_rss_mib": 10 * hf, "finished": True}]
+        return {"n": 8, "voxel_size": 0.3, "stages": stages, "failure": None if done else "x", "wall_s": vox + hf,
+                "done": {"grids": {}} if done else None, "peak_rss_mib": 10 * max(vox, hf), "load": (0, 0, 0)}
+
+    row = scale.median_row([run(1.0, 5.0), run(3.0, 4.0), run(2.0, 9.0), run(99.0, 99.0, done=False)])
+    secs = {s["stage"]: s["seconds"] for s in row["stages"]}
+    assert secs == {"voxelise": 2.0, "hfrep": 5.0} and row["runs"] == 3  # the unfinished run is left out
+    assert row["spread"] == {"voxelise": (1.0, 3.0), "hfrep": (4.0, 9.0)}
+    assert row["wall_s"] == 7.0 and row["peak_rss_mib"] == 50.0  # medians of 6, 7, 11 and 50, 40, 90
+    cells = _table_rows(scale.spread_table([row]))
+    assert len(cells) == 2 and cells[1][2:] == ["3", "5.00", "4.00", "9.00"]

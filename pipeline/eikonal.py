@@ -558,22 +558,9 @@ def _drop_unsolved(d, inside, origins, has_band, coarse_inside):
     none = ~_any_finite(d) & ~has_band
     if not none.any():
         return np.arange(len(d)), coarse_inside, 0
-    gone_inside = none & _all_inside(inside)
+    gone_inside = none & ~_blocks_holding(inside, False)  # every voxel inside
     coarse_inside = merge_sorted(coarse_inside, origins[gone_inside])[0]  # linear, not a sort of 7.6M rows
     return np.flatnonzero(~none), coarse_inside, int(none.sum())
-
-
-@njit(cache=True, parallel=True)
-def _all_inside(inside):
-    """Per block: are all its voxels inside."""
-    out = np.ones(inside.shape[0], np.bool_)
-    for b in prange(inside.shape[0]):
-        flat = inside[b].ravel()
-        for n in range(flat.size):
-            if not flat[n]:
-                out[b] = False
-                break
-    return out
 
 
 @njit(cache=True, parallel=True)

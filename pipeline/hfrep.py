@@ -211,7 +211,7 @@ def density_grid(res, ramp: float, tiles: tuple[np.ndarray, np.ndarray] | None =
     write_batched(grid, d.origins[leaves], fill)
     from pipeline.hfim import fill_tiles
 
-    origins = d.origins[ones]
+    origins, t_v, pos = d.origins[ones], np.zeros(0, np.float32), np.zeros(0, np.int64)
     if tiles is not None:  # both lists in key order: merged, not sorted (8.6M rows at 2048^3)
         t_o, t_v = np.asarray(tiles[0], np.int64).reshape(-1, 3), np.asarray(tiles[1], np.float32).reshape(-1)
         keys = pack_keys(t_o)
@@ -219,10 +219,8 @@ def density_grid(res, ramp: float, tiles: tuple[np.ndarray, np.ndarray] | None =
             order = np.argsort(keys, kind="stable")
             t_o, t_v = t_o[order], t_v[order]
         origins, pos = merge_sorted(origins, t_o)
-        values = np.ones(len(origins), np.float32)
-        values[pos] = t_v
-    else:
-        values = np.ones(len(origins), np.float32)
+    values = np.ones(len(origins), np.float32)
+    values[pos] = t_v
     fill_tiles(grid, origins, values, merge_value=1.0)
     grid.prune()
     return grid

@@ -4,7 +4,7 @@ operations of naive and optimised BSP-trees, plus evaluation speed (points/secon
 Usage: .venv/bin/python bench/bsp_table1.py [--max-faces N] [--points N] [mesh.off ...]
        .venv/bin/python bench/bsp_table1.py --generated [--max-faces N]
 
-``--generated``: build scaling (section 3.3 build, pipeline.bsp_build) on icospheres of 5k, 20k,
+``--generated``: build scaling (section 3.3 build, pipeline.mesh.bsp_build) on icospheres of 5k, 20k,
 80k, 320k and 1.3M faces displaced radially by 0.05 sin(5x) sin(7y) sin(6z) (not convex): build
 seconds (merge, tree, special cases), nodes, depth, splits, and the time ratio per doubling of
 faces (n log n gives about 2.1, n^2 gives 4).
@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from pipeline.bsp import BSPField
-from pipeline.meshio import load_mesh
+from pipeline.mesh.bsp import BSPField
+from pipeline.mesh.meshio import load_mesh
 
 MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 

@@ -5,7 +5,7 @@
    memory (RSS above the warmed-up baseline, each run in a fresh process), counts.
 2. Algorithm 1 with corner control range and continuation vs plain revised-affine subdivision
    ([17], ``continuation=False``): the trend of the paper's Table 1.
-3. Components on bricks (pipeline.component_bricks) run inline vs the unsplit detection: the
+3. Components on bricks (pipeline.topology.component_bricks) run inline vs the unsplit detection: the
    cost of the split (coarse levels revisited per brick, per-brick call overhead) and of the
    driver's label unification; results checked equal.
 4. (issue 14) Sparse detection vs dense evaluation of the compiled model at the cell centres +
@@ -41,7 +41,7 @@ MODELS = {"two spheres": (TWO_SPHERES, -1.0, 2.0), "demo (Fig. 3)": (DEMO, -1.25
 
 
 def _node(raw: dict):
-    from pipeline.config import _Ctx, build_node
+    from pipeline.job.config import _Ctx, build_node
 
     return build_node(raw, ("model",), _Ctx("bench", raw, Path(".")))
 
@@ -51,7 +51,7 @@ def _rss_mb() -> float:
 
 
 def sparse(model, lo: float, size: float, depth: int) -> dict:
-    from pipeline import components as cc
+    from pipeline.topology import components as cc
 
     cc.detect(model, np.full(3, lo), size, 4)  # warm up (Numba cache, imports)
     base = _rss_mb()
@@ -85,7 +85,7 @@ def dense_cc3d(model, lo: float, size: float, depth: int) -> dict:
     inside = f > 0, labelled with ``cc3d.connected_components`` (6-connected)."""
     import cc3d
 
-    from pipeline.tape import compile_model, evaluate_with
+    from pipeline.model.tape import compile_model, evaluate_with
 
     tape = compile_model(model)
     n = 2**depth
@@ -123,7 +123,7 @@ def table_cc3d(names=("demo (Fig. 3)",), depths=(9, 10)) -> None:
 
 
 def continuation(model, lo: float, size: float, depth: int, on: bool) -> dict:
-    from pipeline import components as cc
+    from pipeline.topology import components as cc
 
     cc.detect(model, np.full(3, lo), size, 3, continuation=on)
     t0 = time.perf_counter()
@@ -136,8 +136,8 @@ def continuation(model, lo: float, size: float, depth: int, on: bool) -> dict:
 
 def bricked(model, lo: float, size: float, depth: int, brick: int) -> dict:
     """Unsplit ``detect`` vs ``detect_bricked`` inline (one process: the work a pool shares)."""
-    from pipeline import component_bricks as cb
-    from pipeline import components as cc
+    from pipeline.topology import component_bricks as cb
+    from pipeline.topology import components as cc
 
     origin = np.full(3, lo)
     cb.detect_bricked(model, origin, size, 4, 4)  # warm up

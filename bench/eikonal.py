@@ -1,4 +1,4 @@
-"""Benchmark: block FIM (pipeline.eikonal) vs scikit-fmm's dense fast marching on a sphere.
+"""Benchmark: block FIM (pipeline.distance.eikonal) vs scikit-fmm's dense fast marching on a sphere.
 
 For each resolution n (domain [-1, 1]^3, n voxels per side, sphere of radius 0.6 off the
 grid's symmetry): scikit-fmm ``distance`` (order 1 and 2) on the dense array of the exact
@@ -21,8 +21,8 @@ import time
 import numpy as np
 import skfmm
 
-from pipeline.eikonal import signed_distance_blocks, solve_distance
-from pipeline.grid import LEAF, BlockGrid
+from pipeline.distance.eikonal import signed_distance_blocks, solve_distance
+from pipeline.sparse.grid import LEAF, BlockGrid
 
 CENTRE = np.array([0.013, -0.021, 0.007])
 RADIUS = 0.6

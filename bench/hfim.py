@@ -1,5 +1,5 @@
 """Benchmark: flat whole-domain FIM (``max_distance: domain``) vs the hierarchical FIM
-(pipeline.hfim) on a sphere of radius 0.25 in the domain [-1, 1]^3 (n voxels per side).
+(pipeline.distance.hfim) on a sphere of radius 0.25 in the domain [-1, 1]^3 (n voxels per side).
 
 Columns: solve time, time to build the OpenVDB grid, leaves, tiles, stored values
 (leaves * 512 + tiles), the grid's ``memUsage``, and the max / mean error against the
@@ -17,9 +17,9 @@ import time
 
 import numpy as np
 
-from pipeline.eikonal import solve_distance, surface_grid
-from pipeline.grid import LEAF, BlockGrid
-from pipeline.hfim import hierarchical_distance, hierarchical_grid, stored_values
+from pipeline.distance.eikonal import solve_distance, surface_grid
+from pipeline.distance.hfim import hierarchical_distance, hierarchical_grid, stored_values
+from pipeline.sparse.grid import LEAF, BlockGrid
 
 CENTRE = np.array([0.013, -0.021, 0.007])
 RADIUS = 0.25

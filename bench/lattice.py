@@ -7,7 +7,7 @@ A ``union`` (rfunc min_max) of N random parts in [-1, 1]^3 (seed fixed), domain 
 
 * spheres: radius 0.03-0.05;
 * capsules: rods, i.e. a ``cylinder`` with ``height:`` (radius 0.01-0.02, length 0.06-0.1)
-  along a random coordinate axis (no capsule primitive exists in pipeline/nodes; rods inside a
+  along a random coordinate axis (no capsule primitive exists in pipeline/model; rods inside a
   ``rotate`` about random axes make a 10^4-part config that the config loader refuses: more
   than its limit of 250,000 values).
 

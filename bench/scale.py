@@ -46,8 +46,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from pipeline.batch import DaskExecutor, Executor, LocalExecutor, execute, run_batch  # noqa: E402
-from pipeline.config import load_jobs  # noqa: E402
+from pipeline.job.batch import DaskExecutor, Executor, LocalExecutor, execute, run_batch  # noqa: E402
+from pipeline.job.config import load_jobs  # noqa: E402
 
 Row = dict[str, Any]
 
@@ -174,7 +174,7 @@ def batch_table(rows: list[Row]) -> str:
 
 
 def read_frep(path: Path, name: str = "frep") -> Any:
-    from pipeline.grid import vdb
+    from pipeline.sparse.grid import vdb
 
     return vdb.read(str(path), name)
 
@@ -290,7 +290,7 @@ def child_e2e(config: str, out: str) -> None:
         emit({"event": "error", "stage": "load", "message": f"{type(e).__name__}: {e}"})
         return
     names = {n for n, _ in job.stages}
-    from pipeline.runner import run_job
+    from pipeline.job.runner import run_job
 
     def progress(msg: str) -> None:
         if msg in names:

@@ -1,7 +1,7 @@
 """Compiled, per-cell specialised tapes vs the node-by-node evaluator, same run (issue 13).
 
 For each model and resolution, voxelise (band 3, block 4) twice in one process — once with the
-tape (pipeline.tape: interval bounds, exact min/max pruning per cell, clause-major evaluation)
+tape (pipeline.model.tape: interval bounds, exact min/max pruning per cell, clause-major evaluation)
 and once with the node-by-node affine bounds and NumPy evaluation — after a warm-up of the
 compiled kernels, and print: seconds, voxels evaluated, active voxels, microseconds per active
 voxel, the speed-up, the mean tape length of the blocks, and the cost per active voxel relative
@@ -26,8 +26,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import pipeline.voxelise as vox  # noqa: E402
-from pipeline.config import load_job  # noqa: E402
+import pipeline.voxel.voxelise as vox  # noqa: E402
+from pipeline.job.config import load_job  # noqa: E402
 
 
 def job_for(model: str, res: int, tmp: Path):

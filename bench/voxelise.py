@@ -9,7 +9,7 @@ run inside this process (a smoke run of under a minute; peak RSS is then cumulat
    of the same model on every voxel of the domain, at 256^3 and 512^3: time, voxels evaluated.
 2. The same field through OpenVDB AX (`pyopenvdb.ax`, C++ JIT over the same active voxels)
    as a throughput ceiling for per-voxel evaluation: our frep grid is written to a .vdb
-   (pipeline.vdbio.write_vdb) and read back, and AX evaluates the same formula (sphere, torus,
+   (pipeline.io.vdbio.write_vdb) and read back, and AX evaluates the same formula (sphere, torus,
    box, and configs/demo.yaml's superellipsoid minus a box written as AX code) over the active
    voxels of the read-back topology. A second table prints our voxelise time per active voxel
    (voxelise() alone, and with the VDB build) vs AX's time per active voxel, and the ratio.
@@ -37,10 +37,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.grid import frep_to_vdb, vdb  # noqa: E402
-from pipeline.nodes import REGISTRY  # noqa: E402
-from pipeline.vdbio import write_vdb  # noqa: E402
-from pipeline.voxelise import voxelise  # noqa: E402
+from pipeline.io.vdbio import write_vdb  # noqa: E402
+from pipeline.oracles import REGISTRY  # noqa: E402
+from pipeline.sparse.grid import frep_to_vdb, vdb  # noqa: E402
+from pipeline.voxel.voxelise import voxelise  # noqa: E402
 
 MODELS = {
     # name: (node factory, AX expression of the same field)
@@ -59,7 +59,7 @@ MODELS = {
 
 def _demo():
     """configs/demo.yaml's model: superellipsoid minus a thin box (r0)."""
-    from pipeline.config import _Ctx, build_node
+    from pipeline.job.config import _Ctx, build_node
 
     raw = {"difference": [{"superellipsoid": {"radii": [1, 1, 1], "exponents": [0.3, 0.3]}},
                           {"box": {"min": [-1.3, -0.02, -1.3], "max": [1.3, 0.02, 1.3]}}], "rfunc": "r0"}

@@ -9,7 +9,7 @@ OpenVDB grids in memory, and run configs.
 
 Every node type of the config (docs/user-guide.md) is a function here with the same parameter
 names; nodes with one child ``of`` are also methods of :class:`Shape`. The shapes are the
-config's own data and are built into nodes by the config loader (pipeline.config.build_model):
+config's own data and are built into nodes by the config loader (pipeline.job.config.build_model):
 a model written in Python and the same model in YAML evaluate, bound and voxelise identically.
 """
 
@@ -23,8 +23,25 @@ from pathlib import Path
 from typing import Any
 
 from frepvdb.shape import POSITIONAL, SOURCE, Shape, make
-from pipeline.config import ConfigError, Domain, Job, jobs_from_root, load_jobs, make_domain, write_config
-from pipeline.nodes import REGISTRY
+from pipeline.io.meshout import WRITERS, zero_set
+from pipeline.io.vdbio import write_vdb
+from pipeline.job.batch import make_executor, run_batch
+from pipeline.job.config import (
+    ConfigError,
+    Domain,
+    Job,
+    apply_overrides,
+    jobs_from_root,
+    load_jobs,
+    load_yaml,
+    make_domain,
+    validation_problems,
+    write_config,
+)
+from pipeline.job.context import JobContext
+from pipeline.job.outputs import prepare_out_root
+from pipeline.oracles import REGISTRY
+from stages import voxelise as voxelise_stage
 
 __all__ = ["Shape", "ConfigError", "load", "voxelise", "save", "run", "config", "domain", *sorted(REGISTRY)]
 
@@ -111,23 +128,20 @@ def voxelise(shape: Shape, bounds: Any, voxel_size: float | None = None, resolut
 
     Runs the ``voxelise`` stage itself (stages/voxelise.py) on a job made from the shape, so the
     grid is the one ``frepvdb run`` writes for the same model, domain and band."""
-    from pipeline.context import JobContext
-    from stages import voxelise as stage
 
     dom = domain(bounds, voxel_size, resolution)
     job = _job(shape, dom, t)
-    params = _stage_params(stage.Params, "voxelise", {"band": band, "block": block})
+    params = _stage_params(voxelise_stage.Params, "voxelise", {"band": band, "block": block})
     ctx = JobContext(job, Path.cwd())
-    stage.run(ctx, params)
+    voxelise_stage.run(ctx, params)
     return ctx.grids["frep"]
 
 
 def save(shape: Shape, path: str | Path, bounds: Any, voxel_size: float | None = None,
          resolution: int | None = None, band: float = 3.0, t: float = 0.0) -> Path:
     """Voxelise ``shape`` over ``bounds`` and write ``path``: a .vdb (the ``frep`` grid), or a closed
-    triangle mesh of its zero set (.stl binary, .3mf, .ply, .obj; pipeline.meshout). Also a
+    triangle mesh of its zero set (.stl binary, .3mf, .ply, .obj; pipeline.io.meshout). Also a
     method: ``shape.save("part.stl", bounds, voxel_size=0.01)``."""
-    from pipeline.meshout import WRITERS, zero_set
 
     path = Path(path)
     kind = path.suffix.lower().lstrip(".")
@@ -136,7 +150,6 @@ def save(shape: Shape, path: str | Path, bounds: Any, voxel_size: float | None =
                          f".{', .'.join(WRITERS)})")
     grid = voxelise(shape, bounds, voxel_size, resolution, band=band, t=t)
     if kind == "vdb":
-        from pipeline.vdbio import write_vdb
 
         write_vdb(path, [grid], {"creator": "frepvdb"})
     else:
@@ -150,7 +163,6 @@ Shape.save = save
 def _stage_params(model: type, name: str, raw: dict) -> Any:
     from pydantic import ValidationError
 
-    from pipeline.config import validation_problems
 
     try:
         return model.model_validate(raw)
@@ -182,8 +194,6 @@ def run(config_or_path: str | Path | dict, out: str | Path = "outputs", force: b
     one with overrides, is written to ``<out>/.frepvdb-configs/`` and run from there (workers and
     bricks find their job by its file). Bad input raises :class:`ConfigError`; a failed job
     RuntimeError."""
-    from pipeline.batch import make_executor, run_batch
-    from pipeline.outputs import prepare_out_root
 
     if isinstance(config_or_path, dict):
         root = copy.deepcopy(config_or_path)
@@ -211,7 +221,6 @@ def run(config_or_path: str | Path | dict, out: str | Path = "outputs", force: b
 
 
 def _overridden(path: Path, overrides: list[str] | tuple) -> dict:
-    from pipeline.config import apply_overrides, load_yaml
 
     root = load_yaml(path)
     apply_overrides(root, overrides, str(path))

@@ -1,9 +1,9 @@
 """``Shape``: a model tree held as the YAML data a config would give, built into nodes by the
-config loader itself (:func:`pipeline.config.build_model`, which calls ``build_node``).
+config loader itself (:func:`pipeline.job.config.build_model`, which calls ``build_node``).
 
 One representation, two front ends: a shape made in Python and the same model written in YAML
 are the same data, so they build the same node objects, the same compiled tape
-(:func:`pipeline.tape.compile_model`) and the same grids; :meth:`Shape.to_yaml` prints that data.
+(:func:`pipeline.model.tape.compile_model`) and the same grids; :meth:`Shape.to_yaml` prints that data.
 
 Sign convention (SPEC): f > 0 inside, f = 0 on the surface, f < 0 outside (fogleman/sdf and
 libfive use the opposite sign).
@@ -19,10 +19,10 @@ import numpy as np
 import yaml
 from pydantic import ValidationError
 
-from pipeline.config import ConfigError, Domain, build_model, validation_problems
-from pipeline.nodes import REGISTRY, Node
-from pipeline.nodes.expr import FormulaError, parse_formula
-from pipeline.tape import compile_model, gradient_with
+from pipeline.job.config import ConfigError, Domain, build_model, validation_problems
+from pipeline.model.expr import FormulaError, parse_formula
+from pipeline.model.tape import compile_model, gradient_with
+from pipeline.oracles import REGISTRY, Node
 
 SOURCE = "<python>"  # how a shape made in code is named in messages (a config names its file)
 
@@ -70,7 +70,7 @@ class Shape:
 
     def bound(self, lo: Any, hi: Any, t: float = 0.0) -> tuple:
         """Rigorous (lower, upper) bounds of the field over the box lo..hi (revised affine
-        arithmetic, pipeline.affine); (B, 3) corners give arrays, one box (3,) gives floats."""
+        arithmetic, pipeline.field.affine); (B, 3) corners give arrays, one box (3,) gives floats."""
         lo_a, hi_a = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
         flo, fhi = self.node(t=t).bound(lo_a.reshape(-1, 3), hi_a.reshape(-1, 3), t)
         if lo_a.ndim == 1:
@@ -79,7 +79,7 @@ class Shape:
 
     def gradient(self, points: Any, t: float = 0.0) -> np.ndarray:
         """Exact gradients of the field at points, forward mode over the compiled tape
-        (pipeline.tape.gradient_with; one-sided on creases): (N, 3) gives (N, 3), one point (3,)
+        (pipeline.model.tape.gradient_with; one-sided on creases): (N, 3) gives (N, 3), one point (3,)
         gives (3,). A model the tape cannot hold (grid, hfrep, component, r0/sardf or ADF meshes)
         raises TypeError."""
         p = np.asarray(points, dtype=np.float64)

@@ -1,4 +1,9 @@
-"""Command line: ``frepvdb run | validate | info | collide | convert``. Exit 0 ok, 2 bad config or input, 1 failure."""
+"""Command line: ``frepvdb run | validate | info | collide | convert``. Exit 0 ok, 2 bad config or input, 1 failure.
+
+Each command imports what it needs inside its function: deferred for start-up time (``info``
+needs neither Numba nor the node registry, and VTK, matplotlib and trimesh load only for runs that
+write VTK files or previews or read meshes: tests/test_config_cli.py). This
+module is the top layer, so these imports all point down (tests/test_layers.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +15,7 @@ from pathlib import Path
 
 import yaml
 
-from pipeline.errors import ConfigError, interrupted, on_interrupt
+from pipeline.util.errors import ConfigError, interrupted, on_interrupt
 
 EXIT_OK, EXIT_FAIL, EXIT_INPUT = 0, 1, 2
 
@@ -50,7 +55,7 @@ def _one_line(e: BaseException, limit: int = 300) -> str:
 
 def _terminate_on_sigterm():
     """SIGTERM ends a run like Ctrl-C: staging folders are removed, locks released, exit 1
-    (both go through pipeline.errors.on_interrupt, so an interrupt inside compiled code is
+    (both go through pipeline.util.errors.on_interrupt, so an interrupt inside compiled code is
     still reported as one)."""
     import threading
 
@@ -126,7 +131,7 @@ def _convert_parser(sub) -> None:
 
 
 def cmd_validate(args) -> int:
-    from pipeline.config import load_jobs
+    from pipeline.job.config import load_jobs
 
     jobs = load_jobs(args.config, overrides=args.overrides)
     # libyaml's emitter when present: a frames sweep prints thousands of documents
@@ -136,7 +141,7 @@ def cmd_validate(args) -> int:
 
 
 def cmd_info(args) -> int:
-    from pipeline.vdbinfo import describe_vdb_isolated
+    from pipeline.io.vdbinfo import describe_vdb_isolated
 
     try:
         print(describe_vdb_isolated(args.file), end="")
@@ -156,8 +161,8 @@ def cmd_collide(args) -> int:
 
     import numpy as np
 
-    from pipeline.components import collide, depth_for
-    from pipeline.config import load_job
+    from pipeline.job.config import load_job
+    from pipeline.topology.components import collide, depth_for
 
     if args.tolerance is not None and not (math.isfinite(args.tolerance) and args.tolerance > 0):
         print(f"error: --tolerance must be a finite number > 0, got {args.tolerance:g}", file=sys.stderr)
@@ -178,10 +183,10 @@ def cmd_collide(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from pipeline.batch import make_executor, run_batch
-    from pipeline.config import load_jobs
-    from pipeline.progress import BatchProgress
-    from pipeline.runner import model_warnings
+    from pipeline.job.batch import make_executor, run_batch
+    from pipeline.job.config import load_jobs
+    from pipeline.job.display import BatchProgress
+    from pipeline.job.runner import model_warnings
 
     status = EXIT_OK
     jobs = []
@@ -193,8 +198,8 @@ def cmd_run(args) -> int:
             status = EXIT_INPUT
     if not jobs:
         return status
-    from pipeline.batch import check_unique_names
-    from pipeline.outputs import prepare_out_root
+    from pipeline.job.batch import check_unique_names
+    from pipeline.job.outputs import prepare_out_root
 
     try:
         check_unique_names(jobs)
@@ -236,8 +241,8 @@ def cmd_run(args) -> int:
 
 def _overridden_jobs(configs: list[Path], overrides: list[str], out: Path) -> list:
     """The jobs of each config with ``--set`` applied, from its effective config written under
-    ``<out>/.frepvdb-configs/`` (pipeline.config.write_config)."""
-    from pipeline.config import apply_overrides, load_jobs, load_yaml, write_config
+    ``<out>/.frepvdb-configs/`` (pipeline.job.config.write_config)."""
+    from pipeline.job.config import apply_overrides, load_jobs, load_yaml, write_config
 
     jobs = []
     for cfg in configs:
@@ -255,7 +260,7 @@ CONVERT_PAD = 0.1
 
 def cmd_convert(args) -> int:
     """mesh -> .vdb through a job (the runner, its checks and safe outputs), or .vdb -> mesh."""
-    from pipeline.meshio import SUFFIXES
+    from pipeline.mesh.meshio import SUFFIXES
 
     src, dst = args.input.suffix.lower(), args.output.suffix.lower()
     if src in SUFFIXES:
@@ -263,7 +268,7 @@ def cmd_convert(args) -> int:
             return _usage(f"{args.output}: a mesh converts to a .vdb file (got {dst or 'no suffix'!r})")
         return _mesh_to_vdb(args)
     if src == ".vdb":
-        from pipeline.meshout import MESH_KINDS
+        from pipeline.io.meshout import MESH_KINDS
 
         if dst.lstrip(".") not in MESH_KINDS:
             return _usage(f"{args.output}: a .vdb converts to a mesh file: .{', .'.join(MESH_KINDS)} "
@@ -311,9 +316,9 @@ def _mesh_to_vdb(args) -> int:
     import shutil
     import tempfile
 
-    from pipeline.batch import make_executor, run_batch
-    from pipeline.config import load_jobs, write_config
-    from pipeline.meshio import MeshError, load_mesh
+    from pipeline.job.batch import make_executor, run_batch
+    from pipeline.job.config import load_jobs, write_config
+    from pipeline.mesh.meshio import MeshError, load_mesh
 
     problem = (_finite_positive("--voxel-size", args.voxel_size) or _finite_positive("--band", args.band)
                or (f"--resolution must be > 0, got {args.resolution}" if args.resolution is not None
@@ -350,8 +355,8 @@ def _fail(message: str) -> int:
 
 
 def _vdb_to_mesh(args) -> int:
-    from pipeline.meshout import WRITERS, zero_set
-    from pipeline.vdbio import vdb
+    from pipeline.io.meshout import WRITERS, zero_set
+    from pipeline.io.vdbio import vdb
 
     if not args.input.is_file():
         return _usage(f"{args.input}: file not found")

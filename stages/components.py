@@ -5,7 +5,7 @@ components seed: Algorithm 1 enumerates the model on an octree aligned with the 
 faces), section 4.2 labels the clusters, and every active voxel of the ``frep`` grid gets the
 label of the cell holding it (band voxels outside every kept cell: the nearest finest cell).
 With ``bricks:`` the enumeration and the local labelling run per brick on the workers and the
-labels are unified across brick faces here (pipeline.component_bricks); the result is the same.
+labels are unified across brick faces here (pipeline.topology.component_bricks); the result is the same.
 Writes the ``component`` grid (labels 1..N, background 0), the manifest section
 ``components``, optionally one .vdb per separated component (section 4.3), and with ``keep``
 replaces ``frep`` by the kept pieces (section 5: removing small components).
@@ -19,11 +19,12 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from pipeline import components as cc
-from pipeline import rfunctions as rf
-from pipeline.atomic import atomic_path
-from pipeline.blockwrite import write_leaves
-from pipeline.grid import BlockGrid, frep_to_vdb, linear_transform, vdb
+from pipeline.field import rfunctions as rf
+from pipeline.sparse.blockwrite import write_leaves
+from pipeline.sparse.grid import BlockGrid, frep_to_vdb, linear_transform, vdb
+from pipeline.topology import component_bricks as cb
+from pipeline.topology import components as cc
+from pipeline.util.atomic import atomic_path
 from stages.base import StageParams
 
 REQUIRES = ("voxelise",)
@@ -97,16 +98,14 @@ def run(ctx, p: Params) -> dict:
 
 def _detect(ctx, origin, size: float, depth: int, region) -> cc.Components:
     """Algorithm 1 + section 4.2 on the whole domain, or with ``bricks:`` brick by brick on the
-    executor's workers (pipeline.component_bricks; each worker loads the job by reference)."""
+    executor's workers (pipeline.topology.component_bricks; each worker loads the job by reference)."""
     job = ctx.job
     if not job.bricks:
         return cc.detect(job.model, origin, size, depth, job.t, region)
-    from pipeline import component_bricks as cb
-    from pipeline.batch import ref_of
 
     cells, phase = cb.voxel_bricks(job.bricks, job.domain.index_min, job.domain.voxel_size, size, depth)
     return cb.detect_bricked(job.model, origin, size, depth, cells, job.t, region, phase=phase,
-                             run_map=ctx.map, source=ref_of(job))
+                             run_map=lambda fn, tasks: ctx.map_with(fn, tasks, part="model"))
 
 
 def _voxel_labels(found: cc.Components, blocks: BlockGrid, index_min=None) -> np.ndarray:

@@ -1,7 +1,7 @@
 """export: the grids the stages made -> .vdb, VTK files, previews and report.html.
 
-Library calls: pipeline.vdbio.write_vdb, pipeline.vtkio.write_vtk_outputs,
-pipeline.previews.write_previews, pipeline.report.write_report (after the manifest).
+Library calls: pipeline.io.vdbio.write_vdb, pipeline.io.vtkio.write_vtk_outputs,
+pipeline.io.previews.write_previews, pipeline.io.report.write_report (after the manifest).
 """
 
 from __future__ import annotations
@@ -11,6 +11,9 @@ from typing import Literal
 
 from pydantic import Field
 
+from pipeline.io.meshout import export_meshes
+from pipeline.io.report import write_report
+from pipeline.io.vdbio import write_vdb
 from stages.base import StageParams
 
 REQUIRES = ("voxelise",)
@@ -27,12 +30,11 @@ class Params(StageParams):
     previews: bool = False
     report: bool = Field(default=True, description="report.html (with previews when they are made)")
     mesh: list[Literal["stl", "3mf", "ply", "obj"]] = Field(
-        default_factory=list, description="printable meshes of the zero set (pipeline.meshout): <name>_mesh.<kind>")
+        default_factory=list, description="printable meshes of the zero set (pipeline.io.meshout): <name>_mesh.<kind>")
     mesh_per_component: bool = Field(default=False, description="also one mesh per component (components stage)")
 
 
 def run(ctx, p: Params) -> dict:
-    from pipeline.vdbio import write_vdb
 
     if ctx.job.memory_estimate:  # the per-stage peak estimate checked before the run (config._check_memory)
         ctx.manifest.setdefault("memory_estimate_bytes", dict(ctx.job.memory_estimate))
@@ -47,7 +49,7 @@ def run(ctx, p: Params) -> dict:
         ctx.add_output(path, "vdb")
     mesh = None
     if p.vtk:
-        from pipeline.vtkio import write_vtk_outputs  # VTK takes ~1 s to import: only when asked for
+        from pipeline.io.vtkio import write_vtk_outputs  # VTK takes ~1 s to import: only when asked for
 
         entries, mesh = write_vtk_outputs(ctx.out_dir, ctx.job.name, grids, ctx.voxel_size, p.vtk,
                                           max_points=p.max_points, adaptivity=p.adaptivity)
@@ -56,11 +58,10 @@ def run(ctx, p: Params) -> dict:
                                                                          if k not in ("path", "kind")})
         stats["vtk"] = [e["path"] for e in entries]
     if p.mesh:
-        from pipeline.meshout import export_meshes
 
         stats["mesh"] = export_meshes(ctx, ctx.grids, p.mesh, p.mesh_per_component)
     if p.previews:
-        from pipeline.previews import write_previews
+        from pipeline.io.previews import write_previews  # matplotlib: only when previews are asked for
 
         for png in write_previews(ctx.out_dir / "previews", grids, ctx.voxel_size, mesh=mesh):
             ctx.add_output(png, "preview")
@@ -71,6 +72,5 @@ def run(ctx, p: Params) -> dict:
 
 
 def _write_report(ctx, manifest: dict) -> None:
-    from pipeline.report import write_report
 
     write_report(ctx.out_dir / "report.html", manifest)

@@ -2,8 +2,8 @@
 ``density`` fog volume; field-quality numbers for the manifest; attribute grids
 parameterised by distance (hfrep section 7, ``attributes:``).
 
-Library calls: pipeline.eikonal.solve_distance / surface_grid, pipeline.hfrep.hfrep_blocks,
-pipeline.quality, pipeline.attributes.
+Library calls: pipeline.distance.eikonal.solve_distance / surface_grid, pipeline.distance.hfrep.hfrep_blocks,
+pipeline.distance.quality, pipeline.distance.attributes.
 """
 
 from __future__ import annotations
@@ -13,7 +13,13 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import AfterValidator, Field, field_validator, model_validator
 
-from pipeline.attributes import check_formula
+from pipeline.distance import attributes as attr
+from pipeline.distance.attributes import check_formula
+from pipeline.distance.eikonal import solve_distance, surface_grid
+from pipeline.distance.hfim import fill_deep, fill_tiles, hierarchical_distance, hierarchical_grid, interior_tiles
+from pipeline.distance.hfrep import density_grid, hfrep_blocks, hfrep_grid
+from pipeline.distance.quality import field_report
+from pipeline.util.errors import InputError
 from stages.base import StageParams
 
 REQUIRES = ("voxelise",)
@@ -75,9 +81,6 @@ class Params(StageParams):
 
 
 def run(ctx, p: Params) -> dict:
-    from pipeline.eikonal import solve_distance, surface_grid
-    from pipeline.hfrep import density_grid, hfrep_blocks, hfrep_grid
-    from pipeline.quality import field_report
 
     if ctx.job.memory_estimate:  # the per-stage peak estimate checked before the run (config._check_memory)
         ctx.manifest.setdefault("memory_estimate_bytes", dict(ctx.job.memory_estimate))
@@ -88,7 +91,6 @@ def run(ctx, p: Params) -> dict:
     # voxelise's leaves hold values of the right sign in every voxel: no flood fill of the band
     solve_kw = {"brick": ctx.job.bricks, "map_fn": ctx.map, "signed_values": bool(ctx.data.get("frep_signed"))}
     if p.solver == "hfim":  # fine solve out to max_distance (default 16 voxels), coarse cells beyond
-        from pipeline.hfim import hierarchical_distance
         reach = 16.0 if p.max_distance in (None, "domain") else p.max_distance / h
         hres = hierarchical_distance(frep, (dom.index_min, dom.index_max), ctx.data["inside_boxes"],
                                      fine_distance_vox=reach, order=p.order, **solve_kw)
@@ -107,7 +109,6 @@ def run(ctx, p: Params) -> dict:
         stats["attributes"] = _attributes(ctx, p, res, hf, band, meta)
     tiles = _interior(res, dom, p.order, stats)
     if tiles is not None:  # deep inside the step is +1: hfrep = d, density = 1 (d is past the ramp)
-        from pipeline.hfim import fill_deep
         fill_deep(hf, res, tiles[2])  # the fine blocks' inside voxels beyond the fine solve's limit
     # build the grids one at a time and drop each working copy: at 1024^3 the interior
     # distance is hundreds of millions of voxels
@@ -115,7 +116,6 @@ def run(ctx, p: Params) -> dict:
     hgrid.updateMetadata({**meta, "step": p.step, "slope": p.slope})
     del hf
     if tiles is not None:
-        from pipeline.hfim import fill_tiles
         fill_tiles(hgrid, tiles[0], tiles[1])
     if p.density:
         coarse = None if tiles is None else (tiles[0], np.clip(tiles[1] / (band * h), 0.0, 1.0))
@@ -124,7 +124,6 @@ def run(ctx, p: Params) -> dict:
     else:
         del ctx.grids["density"]
     if p.solver == "hfim":
-        from pipeline.hfim import hierarchical_grid
         surface = hierarchical_grid(hres, "surface", background=band * h)  # SPEC: background = band * h
         stats["hfim"] = {k: v for k, v in hres.stats.items() if k != "fine"}
     else:
@@ -144,10 +143,9 @@ def _inside_distance(p: Params, maxd, band_world: float) -> float | None:
 
 def _interior(res, dom, order: int, stats: dict):
     """(tile origins, distances, values of the deep voxels of ``res.deep_rows``) of the coarse
-    interior (pipeline.hfim.interior_tiles), or None."""
+    interior (pipeline.distance.hfim.interior_tiles), or None."""
     if res.coarse_inside is None:
         return None
-    from pipeline.hfim import interior_tiles
 
     origins, values, fill, st = interior_tiles(res, (dom.index_min, dom.index_max), order)
     stats["coarse_interior"] = st
@@ -156,9 +154,6 @@ def _interior(res, dom, order: int, stats: dict):
 
 def _attributes(ctx, p: Params, res, hf, band: float, meta: dict) -> dict:
     """Evaluate and store every attribute grid; a formula that is not finite is a config error."""
-    from pipeline import attributes as attr
-    from pipeline.config import line_of
-    from pipeline.errors import ConfigError
 
     out = {}
     for a_index, a in enumerate(p.attributes):
@@ -168,21 +163,10 @@ def _attributes(ctx, p: Params, res, hf, band: float, meta: dict) -> dict:
             values = attr.evaluate_attribute([attr.AttributeFormula(s) for s in srcs], vox, ctx.job.t)
         except attr.NonFiniteAttribute as e:
             tail = ("formula",) if a.formula is not None else ("rgb", e.component)
-            path = _stage_path(ctx, p) + ("attributes", a_index) + tail
-            raise ConfigError.one(ctx.job.config_path, line_of(ctx.job.raw, path), path, str(e)) from None
+            raise InputError(str(e), ("attributes", a_index) + tail) from None
         grid = attr.attribute_grid(a.name, values, vox)
         grid.updateMetadata({**meta, "attribute": a.name, "attribute_formulas": " ; ".join(srcs),
                              "attribute_outside": a.outside})
         ctx.grids[a.name] = grid
         out[a.name] = {"type": grid.valueTypeName, "active_voxels": int(grid.activeVoxelCount())}
     return out
-
-
-def _stage_path(ctx, p: Params) -> tuple:
-    """YAML path of this stage's parameters (``stages[i].hfrep`` or ``jobs[k].stages[i].hfrep``)."""
-    job = ctx.job
-    i = next(n for n, (_, q) in enumerate(job.stages) if q is p)
-    raw = job.raw if isinstance(job.raw, dict) else {}
-    entry = raw.get("jobs")[job.index[0]] if raw.get("jobs") else None
-    base = ("jobs", job.index[0], "stages") if isinstance(entry, dict) and "stages" in entry else ("stages",)
-    return base + (i, "hfrep")

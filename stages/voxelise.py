@@ -1,4 +1,4 @@
-"""voxelise: the model tree -> the sparse ``frep`` grid (pipeline.voxelise).
+"""voxelise: the model tree -> the sparse ``frep`` grid (pipeline.voxel.voxelise).
 
 With ``bricks:`` in the config, the domain is split into bricks that workers voxelise (each
 loads the job itself and sends back its blocks as NumPy arrays); the blocks are assembled here
@@ -11,8 +11,8 @@ from typing import Literal
 
 from pydantic import Field
 
-from pipeline.grid import frep_to_vdb
-from pipeline.voxelise import assemble, bricks_for, merge_samples, root_size_for, sample_blocks, voxelise
+from pipeline.sparse.grid import frep_to_vdb
+from pipeline.voxel.voxelise import assemble, bricks_for, merge_samples, root_size_for, sample_blocks, voxelise
 from stages.base import StageParams
 
 
@@ -25,11 +25,9 @@ def run(ctx, p: Params) -> dict:
     job, dom = ctx.job, ctx.job.domain
     imin, imax, h = dom.index_min, dom.index_max, dom.voxel_size
     if job.bricks:
-        from pipeline.batch import ref_of
-
         root = root_size_for(dom.dims, p.block)
-        tasks = [(ref_of(job), lo, hi, root, p.band, p.block) for lo, hi in bricks_for(imin, imax, job.bricks, p.block)]
-        res = assemble(merge_samples(ctx.map(sample_brick, tasks)), imin, imax, h, p.band)
+        tasks = [(lo, hi, root, p.band, p.block) for lo, hi in bricks_for(imin, imax, job.bricks, p.block)]
+        res = assemble(merge_samples(ctx.map_with(sample_brick, tasks)), imin, imax, h, p.band)
     else:
         res = voxelise(job.model, imin, imax, h, p.band, p.block, job.t, progress=ctx.progress)
     grid = frep_to_vdb(res.blocks, res.inside_boxes, "frep", outside_boxes=res.outside_boxes, domain=(imin, imax))
@@ -44,12 +42,9 @@ def run(ctx, p: Params) -> dict:
     return res.stats
 
 
-def sample_brick(task):
-    """Worker side of a bricked voxelise: load the job, sample the blocks of one brick."""
-    from pipeline.batch import load_ref
-
-    ref, lo, hi, root, band, block = task
-    job = load_ref(ref)
+def sample_brick(job, task):
+    """Worker side of a bricked voxelise: sample the blocks of one brick of ``job``."""
+    lo, hi, root, band, block = task
     dom = job.domain
     s = sample_blocks(job.model, dom.index_min, dom.index_max, dom.voxel_size, band, block, job.t,
                       root_size=root, clip=(lo, hi))

@@ -11,10 +11,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline import affine as aa
-from pipeline import ops
-from pipeline.affine import AffineForm
-from pipeline.nodes import REGISTRY
+from pipeline.field import affine as aa
+from pipeline.field.affine import AffineForm
+from pipeline.model import ops
+from pipeline.oracles import REGISTRY
 
 SLACK = 1e-12  # float rounding between the two evaluation orders, relative to the magnitude
 

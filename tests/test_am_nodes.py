@@ -1,4 +1,4 @@
-"""AM nodes (pipeline/nodes/am.py: shell, tpms, lattice): the tape conformance of tests/test_tape.py
+"""AM nodes (pipeline/model/am.py: shell, tpms, lattice): the tape conformance of tests/test_tape.py
 (values = node evaluation, bounds hold, specialised = full), the formulas themselves, and a
 graded gyroid infill of a shelled box that voxelises into one component whose wall thickness,
 measured on the written grid, follows its formula within a voxel."""
@@ -12,8 +12,8 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 import frepvdb as fv
-from pipeline.config import ConfigError
-from pipeline.grid import vdb
+from pipeline.job.config import ConfigError
+from pipeline.sparse.grid import vdb
 from tests.test_tape import check_tape, job_of
 
 BOX = "{box: {min: [-0.6, -0.6, -0.6], max: [0.6, 0.6, 0.6]}}"
@@ -48,7 +48,7 @@ def test_shell_sides() -> None:
 def test_tpms_zero_set_and_wall_thickness(kind) -> None:
     """The wall's mid-surface is the TPMS (field = T/2 there) and along the normal the wall ends
     at +-T/2 to first order."""
-    from pipeline.nodes.am import _TPMS
+    from pipeline.model.am import _TPMS
 
     cell, T = 0.5, 0.04
     k = 2 * math.pi / cell
@@ -111,7 +111,7 @@ def test_graded_gyroid_infill_of_a_shelled_part(tmp_path, part_kind) -> None:
     grid along the gyroid normal matches the formula within a voxel."""
     import trimesh
 
-    from pipeline.nodes.am import _TPMS
+    from pipeline.model.am import _TPMS
 
     h, cell = 0.01, 0.4
     if part_kind == "frep":

@@ -13,11 +13,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import frepvdb as fv
-from pipeline import tape as pt
 from pipeline.cli import main
-from pipeline.config import load_job
-from pipeline.grid import vdb
-from pipeline.nodes import REGISTRY
+from pipeline.job.config import load_job
+from pipeline.model import tape as pt
+from pipeline.oracles import REGISTRY
+from pipeline.sparse.grid import vdb
 
 BOUNDS = [[-1.2, -1.2, -1.2], [1.2, 1.2, 1.2]]
 

@@ -1,4 +1,4 @@
-"""BSP-fields (pipeline.bsp) and approximate distance fields (pipeline.adf) on small shapes."""
+"""BSP-fields (pipeline.mesh.bsp) and approximate distance fields (pipeline.mesh.adf) on small shapes."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from matplotlib.path import Path as MplPath
 
-from pipeline import rfunctions as rf
-from pipeline.adf import ADFField
-from pipeline.bsp import FAMILY_CODE, SPECIAL_B, SPECIAL_C, BSPField, merge_coplanar, nb_and, nb_or
+from pipeline.field import rfunctions as rf
+from pipeline.mesh.adf import ADFField
+from pipeline.mesh.bsp import FAMILY_CODE, SPECIAL_B, SPECIAL_C, BSPField, merge_coplanar, nb_and, nb_or
 
 FAMILIES = ("min_max", "r0", "sardf")
 
@@ -146,7 +146,7 @@ def test_optimised_splits_no_more_than_naive(name: str) -> None:
 
 
 def _reference_eval(field: BSPField, p: np.ndarray) -> np.ndarray:
-    """Section 3.3.2 formula evaluated recursively with pipeline.rfunctions (NumPy)."""
+    """Section 3.3.2 formula evaluated recursively with pipeline.field.rfunctions (NumPy)."""
     t, fam = field.tree, field.rfunc
 
     def node(j: int) -> np.ndarray:
@@ -396,10 +396,10 @@ def _margin_cases(rng) -> list:
 
 
 def test_direct_highs_is_linprogs() -> None:
-    """pipeline.bsp._highs_margin (the special cases' near-threshold LPs through scipy's HiGHS
+    """pipeline.mesh.bsp._highs_margin (the special cases' near-threshold LPs through scipy's HiGHS
     module directly, without linprog's ~1 ms of Python a call) returns linprog's optimum to the
     bit, so the special-case decisions, hence the trees and their values, are unchanged."""
-    from pipeline.bsp import _highs_margin as direct
+    from pipeline.mesh.bsp import _highs_margin as direct
 
     for a, b in _margin_cases(np.random.default_rng(11)):
         a1 = np.ascontiguousarray(np.c_[a, np.ones(len(a))])
@@ -407,11 +407,11 @@ def test_direct_highs_is_linprogs() -> None:
 
 
 def test_compiled_margin_agrees_with_highs() -> None:
-    """pipeline.small_lp.max_margin (the special cases' interior LPs, section 3.2): the optimum
+    """pipeline.field.small_lp.max_margin (the special cases' interior LPs, section 3.2): the optimum
     equals HiGHS's to 1e-7 on random halfspace sets of 4-40 planes, on boxes touching a
     halfspace (margin 0) and on repeated planes (degenerate); so its decision (margin > tol) is
     HiGHS's wherever the margin is not within HiGHS's own tolerance of the threshold."""
-    from pipeline.small_lp import max_margin
+    from pipeline.field.small_lp import max_margin
 
     for a, b in _margin_cases(np.random.default_rng(7)):
         t = max_margin(np.ascontiguousarray(a), np.ascontiguousarray(b))

@@ -1,4 +1,4 @@
-"""Compiled BSP-tree build (pipeline.bsp_build, bsp-fields.txt section 3.3): exact fields on
+"""Compiled BSP-tree build (pipeline.mesh.bsp_build, bsp-fields.txt section 3.3): exact fields on
 generated meshes of 5k-20k faces, about n log n scaling, deep trees, the NumPy reference."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.bsp import BSPField, build_tree, merge_coplanar
+from pipeline.mesh.bsp import BSPField, build_tree, merge_coplanar
 
 FAMILIES = ("min_max", "r0", "sardf")
 
@@ -89,7 +89,7 @@ def test_median_cuts_make_large_trees_shallow() -> None:
     """Above KD_MIN triangles the optimised build first halves the list by median cuts: the
     20k-face bumpy sphere's tree is tens of nodes deep instead of thousands, with no more splits
     than the chain (and far fewer than naive), and its field is exact (sign and zero set above)."""
-    from pipeline.bsp import KD_LEAF, KD_MIN
+    from pipeline.mesh.bsp import KD_LEAF, KD_MIN
 
     mesh = bumpy_sphere(5)
     polys = merge_coplanar(mesh.vertices, mesh.faces)
@@ -129,7 +129,7 @@ def test_vectorised_triangle_split_equals_clip_simplex() -> None:
     """bsp._split_triangles (median cuts split ~ one triangle per face) gives the parts of the
     per-piece Split_Polygon (_clip_simplex), in the same order, to the bit; cut planes through
     vertices (axis planes at 0 through an icosphere) included."""
-    from pipeline import bsp
+    from pipeline.mesh import bsp
 
     polys = merge_coplanar(*(lambda m: (m.vertices, m.faces))(bumpy_sphere(3)))
     rng = np.random.default_rng(0)

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.bsp import BSPField
-from pipeline.meshio import load_mesh
+from pipeline.mesh.bsp import BSPField
+from pipeline.mesh.meshio import load_mesh
 
 MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 FAMILIES = ("min_max", "r0", "sardf")

@@ -12,11 +12,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from pipeline import components as cc
-from pipeline import rfunctions as rf
 from pipeline.cli import main
-from pipeline.config import _Ctx, build_node
-from pipeline.grid import vdb
+from pipeline.field import rfunctions as rf
+from pipeline.job.config import _Ctx, build_node
+from pipeline.sparse.grid import vdb
+from pipeline.topology import components as cc
 
 FAST = settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 DEMO = {"difference": [{"superellipsoid": {"radii": [1, 1, 1], "exponents": [0.3, 0.3]}},
@@ -579,7 +579,7 @@ def _two_sphere_blocks(gap: float, cut: bool = False):
     depth)."""
     from types import SimpleNamespace
 
-    from pipeline.grid import BlockGrid
+    from pipeline.sparse.grid import BlockGrid
     from stages.components import octree_frame
 
     h, r = 1.0 / 40, 0.3

@@ -13,12 +13,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline import component_bricks as cb
-from pipeline import components as cc
-from pipeline.batch import DaskExecutor, Executor, LocalExecutor, run_batch
-from pipeline.config import _Ctx, build_node, load_jobs
-from pipeline.grid import vdb
-from pipeline.nodes.base import Node
+from pipeline.job.batch import DaskExecutor, Executor, LocalExecutor, run_batch
+from pipeline.job.config import _Ctx, build_node, load_jobs
+from pipeline.model.base import Node
+from pipeline.sparse.grid import vdb
+from pipeline.topology import component_bricks as cb
+from pipeline.topology import components as cc
 
 ORIGIN, SIZE = np.full(3, -1.0), 2.0
 DIAGONAL = {"intersection": [{"expr": "0.004 - (x^2 + y^2 + z^2 - (x + y + z)^2 / 3)"},

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main
-from pipeline.grid import vdb
+from pipeline.sparse.grid import vdb
 
 GOOD = """name: {name}
 domain:
@@ -118,7 +118,7 @@ def test_console_script_and_exit_codes(tmp_path):
 
 def test_memory_check_counts_the_hfrep_interior(tmp_path, capsys, monkeypatch):
     """The narrow band of a sphere at 2000^3 fits in 16 GiB, its interior distance does not."""
-    import pipeline.config as config
+    import pipeline.job.config as config
 
     monkeypatch.setattr(config, "_available_memory", lambda: 16 * 2**30)  # a fixed machine size
     text = ("name: big\ndomain: {bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 2000}\n"

@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from pipeline.cli import main
-from pipeline.grid import vdb
+from pipeline.sparse.grid import vdb
 
 
 @pytest.fixture(scope="module")

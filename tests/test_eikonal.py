@@ -1,4 +1,4 @@
-"""Block FIM eikonal solver (pipeline.eikonal) on analytic sphere, box and torus bands.
+"""Block FIM eikonal solver (pipeline.distance.eikonal) on analytic sphere, box and torus bands.
 
 The frep input is built here as the voxeliser builds it: the field evaluated on every 8^3
 leaf that touches the band, active where |f| < band * h.
@@ -13,10 +13,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.eikonal import signed_distance_blocks, solve_distance, surface_blocks, surface_grid
-from pipeline.grid import LEAF, BlockGrid, vdb
-from pipeline.hfrep import HFRepField, hfrep_blocks
-from pipeline.quality import central_gradient, extra_zero_crossings, gradient_stats
+from pipeline.distance.eikonal import signed_distance_blocks, solve_distance, surface_blocks, surface_grid
+from pipeline.distance.hfrep import HFRepField, hfrep_blocks
+from pipeline.distance.quality import central_gradient, extra_zero_crossings, gradient_stats
+from pipeline.sparse.grid import LEAF, BlockGrid, vdb
 
 C = np.array([0.013, -0.021, 0.007])  # off-grid centre: no voxel-aligned symmetry
 HALF = np.array([0.5, 0.35, 0.45])
@@ -307,7 +307,7 @@ def test_surface_level_set_grid() -> None:
 def test_second_order_fallback_path_gives_the_same_field(monkeypatch) -> None:
     """If the second-order pass from the initial layer does not converge within its bound, the
     free voxels are reset and first order then second order run: the same field."""
-    import pipeline.eikonal as eik
+    import pipeline.distance.eikonal as eik
 
     frep, dom = band_grid(torus, 64)
     h = 2.0 / 64
@@ -342,7 +342,7 @@ def test_red_black_waves_give_the_same_field_on_any_thread_count(monkeypatch) ->
     parallel one on 1 and on 2 threads give bit-identical distances."""
     import numba
 
-    import pipeline.fim as fim
+    import pipeline.distance.fim as fim
 
     frep, dom = band_grid(torus, 96)
     h = 2.0 / 96

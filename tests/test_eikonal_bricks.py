@@ -1,4 +1,4 @@
-"""The eikonal solve continued across bricks (pipeline.eikonal_bricks): inline, on the local
+"""The eikonal solve continued across bricks (pipeline.distance.eikonal_bricks): inline, on the local
 process pool and on a real Dask LocalCluster, against the unsplit solve."""
 
 from __future__ import annotations
@@ -11,11 +11,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_eikonal import SHAPES, band_grid
 
-from pipeline.batch import DaskExecutor, Executor, LocalExecutor, run_batch
-from pipeline.config import load_jobs
-from pipeline.eikonal import solve_distance
-from pipeline.eikonal_bricks import brick_of_blocks
-from pipeline.grid import vdb
+from pipeline.distance.eikonal import solve_distance
+from pipeline.distance.eikonal_bricks import brick_of_blocks
+from pipeline.job.batch import DaskExecutor, Executor, LocalExecutor, run_batch
+from pipeline.job.config import load_jobs
+from pipeline.sparse.grid import vdb
 
 N = 64
 H = 2.0 / N

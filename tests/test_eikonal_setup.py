@@ -12,10 +12,10 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.config import _Ctx, build_node
-from pipeline.eikonal import solve_distance
-from pipeline.grid import merge_sorted, pack_keys
-from pipeline.voxelise import voxelise
+from pipeline.distance.eikonal import solve_distance
+from pipeline.job.config import _Ctx, build_node
+from pipeline.sparse.grid import merge_sorted, pack_keys
+from pipeline.voxel.voxelise import voxelise
 
 
 def node(raw: dict):

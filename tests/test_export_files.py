@@ -20,10 +20,10 @@ import pytest
 import vtk
 from vtk.util import numpy_support as nps
 
-from pipeline import previews, report, vtkio
-from pipeline.grid import grid_stats, linear_transform, vdb
-from pipeline.vdbinfo import describe_vdb
-from pipeline.vdbio import metadata_value, set_grid_metadata, write_vdb
+from pipeline.io import previews, report, vtkio
+from pipeline.io.vdbinfo import describe_vdb
+from pipeline.io.vdbio import metadata_value, set_grid_metadata, write_vdb
+from pipeline.sparse.grid import grid_stats, linear_transform, vdb
 
 VOXEL = 0.05
 HALF = 24  # index domain [-HALF, HALF]^3
@@ -427,7 +427,7 @@ def test_write_vtk_outputs_names_and_entries(grids: dict, tmp_path: Path) -> Non
 def test_sample_values_reads_leaves_tiles_and_background_exactly() -> None:
     """The chunked reader returns what OpenVDB stores (active and inactive voxels, a tile,
     the background), equal to the per-voxel sampler, for points across chunk borders."""
-    from pipeline.vtkio import GridSampler, sample_values
+    from pipeline.io.vtkio import GridSampler, sample_values
 
     g = vdb.FloatGrid(-2.5)
     g.fill((0, 0, 0), (15, 15, 15), 7.0, True)  # whole leaves: tiles of 8^3

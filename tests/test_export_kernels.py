@@ -1,4 +1,4 @@
-"""The export stage's compiled kernels (pipeline.meshkernels) against the NumPy code they
+"""The export stage's compiled kernels (pipeline.io.meshkernels) against the NumPy code they
 replaced, and the files written with them read back against the grids: the merged mesh is the
 same mesh (vertex for vertex, up to the order of the vertices), normals and labels the same
 values, the .vti every strided value of every grid."""
@@ -12,12 +12,12 @@ import pytest
 import vtk
 from vtk.util import numpy_support as nps
 
-from pipeline import meshkernels, vtkio
-from pipeline.grid import linear_transform, vdb
+from pipeline.io import meshkernels, vtkio
+from pipeline.sparse.grid import linear_transform, vdb
 from tests.test_export_files import VOXEL, sample_grids
 
 
-# --- the NumPy code the kernels replaced (pipeline/vtkio.py before session 7) ----------------
+# --- the NumPy code the kernels replaced (pipeline/io/vtkio.py before session 7) ----------------
 def _ref_face_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
     p = points.astype(np.float64)
     a = p[tris[:, 0]]
@@ -244,7 +244,7 @@ def test_raster_surface_depth_coverage_and_shading() -> None:
 def test_raster_of_a_closed_mesh_has_no_holes() -> None:
     """The sphere meshes of the sample scene, seen from the preview's view: every pixel centre
     well inside a sphere's projected disc is covered, none well outside both."""
-    from pipeline.previews import View
+    from pipeline.io.previews import View
 
     grids = sample_grids()
     m = vtkio.extract_surface(grids, VOXEL)
@@ -297,7 +297,7 @@ def test_polydata_keeps_its_arrays_alive_without_copies(tmp_path: Path) -> None:
 
 
 def _ref_merge(points: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """pipeline.meshout._merge before session 7: np.unique over the float64 rows."""
+    """pipeline.io.meshout._merge before session 7: np.unique over the float64 rows."""
     uniq, inverse = np.unique(points, axis=0, return_inverse=True)
     t = inverse.reshape(-1)[tris]
     t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
@@ -310,7 +310,7 @@ def test_printable_mesh_merge_is_the_unique_sort_merge(float32_points: bool) -> 
     """meshout._merge (hash table for float32 points, np.unique otherwise) against np.unique:
     equal coordinates merged (-0.0 with 0.0), triangles with a repeated vertex dropped, collinear
     ones with three distinct vertices kept."""
-    from pipeline import meshout
+    from pipeline.io import meshout
 
     pts, tris = _soup(9)
     pts = pts.astype(np.float64)

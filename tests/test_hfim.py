@@ -1,4 +1,4 @@
-"""Hierarchical FIM (pipeline.hfim) on a small sphere and box in the domain [-1, 1]^3:
+"""Hierarchical FIM (pipeline.distance.hfim) on a small sphere and box in the domain [-1, 1]^3:
 coarse nodes vs the analytic distance and vs the flat whole-domain solve, the written grid
 (tiles for far space, read back from a .vdb file) and its storage growth with resolution."""
 
@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.eikonal import solve_distance
-from pipeline.grid import LEAF, vdb
-from pipeline.hfim import fill_tiles, hierarchical_distance, hierarchical_grid, stored_values
+from pipeline.distance.eikonal import solve_distance
+from pipeline.distance.hfim import fill_tiles, hierarchical_distance, hierarchical_grid, stored_values
+from pipeline.sparse.grid import LEAF, vdb
 from tests.test_eikonal import band_grid, box_of, sphere_of
 
 HALF = np.array([0.2, 0.15, 0.18])
@@ -182,7 +182,7 @@ def test_hfrep_stage_with_hfim(tmp_path) -> None:
 
 
 def test_fine_solve_on_bricks_gives_the_same_levels() -> None:
-    """With ``brick`` the fine FIM runs per brick (pipeline.eikonal_bricks); the fine field and
+    """With ``brick`` the fine FIM runs per brick (pipeline.distance.eikonal_bricks); the fine field and
     the coarse levels built on it match the unsplit run within the solver's tolerance."""
     frep, dom, whole = hfim("sphere", 64)
     split = hierarchical_distance(frep, dom, brick=16)
@@ -210,8 +210,8 @@ def test_lattice_fim_solves_what_node_fim_solves(seed: int, holes: bool) -> None
     order. Frozen and excluded nodes are never written. (The second-order case found that the
     block FIM dropped an axis whose second neighbour lay in an absent block, read as outside:
     21 voxels off at the lattice's edge; fixed in fim._axis_term.)"""
-    from pipeline.fim import EXCLUDED, FREE, FROZEN
-    from pipeline.hfim import lattice_fim, node_fim
+    from pipeline.distance.fim import EXCLUDED, FREE, FROZEN
+    from pipeline.distance.hfim import lattice_fim, node_fim
 
     rng = np.random.default_rng(seed)
     shape = (40, 37, 29)

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.eikonal import signed_distance_blocks
-from pipeline.hfrep import hfrep_blocks, step_function
-from pipeline.quality import deviation_on_blocks, extra_zero_crossings, field_report, gradient_stats
+from pipeline.distance.eikonal import signed_distance_blocks
+from pipeline.distance.hfrep import hfrep_blocks, step_function
+from pipeline.distance.quality import deviation_on_blocks, extra_zero_crossings, field_report, gradient_stats
 from tests.test_eikonal import band_grid, solved, sphere
 
 
@@ -53,8 +53,8 @@ def test_fim_dirty_faces_give_the_full_sweeps_result() -> None:
     """A revisited block starts its sweeps from the voxels next to the faces whose ghost layers
     changed (fim.relax_block's ``dirty``): the same distances, bit for bit, as starting every
     visit from every voxel (the serial waves driven here with dirty = all faces)."""
-    from pipeline import eikonal as ek
-    from pipeline import fim as fm
+    from pipeline.distance import eikonal as ek
+    from pipeline.distance import fim as fm
 
     frep, dom = band_grid(sphere, 48)
     saved = {}
@@ -96,8 +96,8 @@ def test_batched_writer_builds_the_same_grid() -> None:
     """grid.write_blocks and blockwrite.write_leaves (runs packed by a compiled pass, split where
     a batch ends) give the grid of a plain reference, one copyFromArray per block of
     where(active, -value, background): same values, active voxels and leaves."""
-    from pipeline.blockwrite import write_leaves
-    from pipeline.grid import vdb, write_blocks
+    from pipeline.sparse.blockwrite import write_leaves
+    from pipeline.sparse.grid import vdb, write_blocks
 
     frep, (lo, hi) = band_grid(sphere, 48)
     shape = tuple(int(x) for x in hi - lo + 9)
@@ -125,7 +125,7 @@ def test_batched_writer_builds_the_same_grid() -> None:
 
 
 def test_release_rows_frees_whole_pages_of_the_given_rows_only() -> None:
-    from pipeline.blockwrite import mapped_empty, release_rows
+    from pipeline.sparse.blockwrite import mapped_empty, release_rows
 
     a = mapped_empty((100, 8, 8, 8), np.float32)  # 2 KiB rows: two to a 4 KiB page
     a[:] = 1.0
@@ -137,10 +137,10 @@ def test_release_rows_frees_whole_pages_of_the_given_rows_only() -> None:
 
 
 def test_surface_grid_consuming_the_solve_writes_the_same_grid(sph, monkeypatch) -> None:
-    from pipeline import grid as grid_module
-    from pipeline.blockwrite import mapped_empty
-    from pipeline.eikonal import EikonalResult, surface_grid
-    from pipeline.grid import BlockGrid
+    from pipeline.distance.eikonal import EikonalResult, surface_grid
+    from pipeline.sparse import grid as grid_module
+    from pipeline.sparse.blockwrite import mapped_empty
+    from pipeline.sparse.grid import BlockGrid
 
     _, res = sph
     monkeypatch.setattr(grid_module, "BATCH", 7)  # many batches, each releasing the blocks before the next
@@ -161,8 +161,8 @@ def test_surface_grid_consuming_the_solve_writes_the_same_grid(sph, monkeypatch)
 def test_neighbour_tables_equal_the_searches(keep: float, far: int) -> None:
     """eikonal.block_neighbours / block_neighbours27 (a dense lattice of rows where it is small,
     binary searches where it is not) against grid.block_index at every offset."""
-    from pipeline.eikonal import _FACE_DIRS, _OFFS27, block_neighbours, block_neighbours27
-    from pipeline.grid import BlockGrid
+    from pipeline.distance.eikonal import _FACE_DIRS, _OFFS27, block_neighbours, block_neighbours27
+    from pipeline.sparse.grid import BlockGrid
 
     rng = np.random.default_rng(3)
     p = np.stack(np.meshgrid(*[np.arange(-6, 7)] * 3, indexing="ij"), -1).reshape(-1, 3)

@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.cli import main
-from pipeline.config import _Ctx, build_node
-from pipeline.grid import vdb
+from pipeline.job.config import _Ctx, build_node
+from pipeline.sparse.grid import vdb
 
 C = np.array([0.031, -0.017, 0.012])  # off-grid centre
 R = 0.6
@@ -369,7 +369,7 @@ def test_memory_estimate_per_stage_counts_the_coarse_interior(tmp_path, capsys, 
     """config._check_memory keeps a per-stage estimate: with the coarse interior the hfrep stage
     needs the band plus a shell, so a sphere at 2000^3 fits 32 GiB; the whole interior (2.1 G
     voxels) does not (exit 2 naming the estimate)."""
-    import pipeline.config as config
+    import pipeline.job.config as config
 
     monkeypatch.setattr(config, "_available_memory", lambda: 32 * 2**30)
     text = ("name: big\ndomain: {bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 2000}\n"
@@ -386,3 +386,30 @@ def test_memory_estimate_per_stage_counts_the_coarse_interior(tmp_path, capsys, 
     assert "interior distance of the hfrep stage" in err
     assert set(est["coarse"]) == {"voxelise", "hfrep"}
     assert est["coarse"]["voxelise"] < est["coarse"]["hfrep"] < 32 * 2**30
+
+
+JOBS = """\
+domain: {bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 16}
+stages:
+  - voxelise: {band: 2}
+jobs:
+  - name: first
+    model: {sphere: {radius: 0.6}}
+  - name: second
+    model: {sphere: {radius: 0.5}}
+    stages:
+      - voxelise: {band: 2}
+      - hfrep:
+          attributes:
+            - {name: m, formula: "sqrt(0.2 - d)"}
+"""
+
+
+def test_a_stage_error_under_jobs_names_the_jobs_entry_and_its_line(tmp_path, capsys) -> None:
+    """A stage's input error found at run time carries the stage's own YAML path: under ``jobs:``
+    that is the job's entry (jobs[1].stages[1]...), with the line of the formula."""
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text(JOBS)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out"), "--executor", "local", "--workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "bad.yaml:13 jobs[1].stages[1].hfrep.attributes[0].formula: the formula is not a finite number" in err, err

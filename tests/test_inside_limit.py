@@ -1,5 +1,5 @@
 """The fine solve's inside limit (``solve_distance(..., inside_distance=...)``, the hfrep
-stage's ``interior: coarse``) and the coarse values beyond it (``pipeline.hfim.interior_tiles``
+stage's ``interior: coarse``) and the coarse values beyond it (``pipeline.distance.hfim.interior_tiles``
 and ``fill_deep``): inside the limit the values are the unlimited solve's, beyond it every
 voxel (leaf tiles and the deep voxels of solved blocks) is within the stated bound of the
 exact distance, and the written grids read back with those values."""
@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.eikonal import INSIDE_MARGIN, solve_distance
-from pipeline.grid import frep_to_vdb
-from pipeline.hfim import fill_deep, fill_tiles, interior_tiles
-from pipeline.hfrep import density_grid, hfrep_blocks
+from pipeline.distance.eikonal import INSIDE_MARGIN, solve_distance
+from pipeline.distance.hfim import fill_deep, fill_tiles, interior_tiles
+from pipeline.distance.hfrep import density_grid, hfrep_blocks
+from pipeline.sparse.grid import frep_to_vdb
 from tests.test_eikonal import band_grid, box_of, sphere_of
 
 N = 96
@@ -114,7 +114,7 @@ def test_blocks_left_out_before_the_solve_change_nothing(monkeypatch) -> None:
     """The lower bound that leaves blocks out before the FIM (eikonal._far_blocks) only drops
     blocks the FIM would not have solved: the same result as without it (margin so large that
     nothing is left out)."""
-    import pipeline.eikonal as eik
+    import pipeline.distance.eikonal as eik
 
     frep, dom = band_grid(SHAPES["box"], N)
     a = solve_distance(frep, 3 * H, dom, inside_distance=LIMIT * H)

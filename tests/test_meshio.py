@@ -1,4 +1,4 @@
-"""Mesh loading and checks (pipeline.meshio)."""
+"""Mesh loading and checks (pipeline.mesh.meshio)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import trimesh
 
-from pipeline.meshio import MeshError, load_mesh
+from pipeline.mesh.meshio import MeshError, load_mesh
 
 MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 
@@ -107,7 +107,7 @@ def test_plain_off_parse_is_trimeshs(tmp_path: Path) -> None:
 
     import numpy as np
 
-    from pipeline.meshio import _plain_off
+    from pipeline.mesh.meshio import _plain_off
 
     torus = trimesh.creation.torus(1.0, 0.3)
     text = trimesh.exchange.off.export_off(torus)

@@ -1,4 +1,4 @@
-"""Printable meshes (pipeline.meshout, export ``mesh:``): the written STL / 3MF / PLY / OBJ files
+"""Printable meshes (pipeline.io.meshout, export ``mesh:``): the written STL / 3MF / PLY / OBJ files
 read back closed, consistently wound and outward, with the volume of the model and of the grid."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytest
 import trimesh
 
 from pipeline.cli import main
-from pipeline.grid import vdb
+from pipeline.sparse.grid import vdb
 
 NS = {"m": "http://schemas.microsoft.com/3dmanufacturing/core/2015/02"}
 
@@ -107,7 +107,7 @@ def test_a_part_cut_by_the_domain_is_reported_open(tmp_path) -> None:
 
 
 def test_verify_catches_truncated_stl_and_3mf(tmp_path) -> None:
-    from pipeline.outputs import verify_outputs
+    from pipeline.job.outputs import verify_outputs
 
     folder, manifest = run_model(tmp_path, "{sphere: {radius: 0.5}}", res=32, mesh="[stl, 3mf]")
     entries = [o for o in manifest["outputs"] if o["kind"] in ("stl", "3mf")]

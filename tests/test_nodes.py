@@ -9,8 +9,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.nodes import REGISTRY
-from pipeline.nodes.expr import FormulaError, parse_formula
+from pipeline.model.expr import FormulaError, parse_formula
+from pipeline.oracles import REGISTRY
 
 
 def node(kind: str, **params):
@@ -92,7 +92,7 @@ def test_set_operations_signs():
 
 
 def test_sardf_equals_minmax_away_from_diagonal_and_is_smooth():
-    from pipeline import rfunctions as rf
+    from pipeline.field import rfunctions as rf
 
     f1 = np.array([1.0, -2.0, 0.3])
     f2 = np.array([-0.5, 3.0, -0.9])

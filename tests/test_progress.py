@@ -1,4 +1,4 @@
-"""Progress (pipeline/progress.py): fractions and time estimates on a terminal, silence off one."""
+"""Progress (pipeline/job/display.py, pipeline/util/progress.py): fractions and time estimates on a terminal, silence off one."""
 
 from __future__ import annotations
 
@@ -6,9 +6,10 @@ import io
 
 import pytest
 
-from pipeline.batch import Executor, run_batch
-from pipeline.config import load_jobs
-from pipeline.progress import BatchProgress, LevelEstimate, format_eta, tick
+from pipeline.job.batch import Executor, run_batch
+from pipeline.job.config import load_jobs
+from pipeline.job.display import BatchProgress, LevelEstimate, format_eta
+from pipeline.util.progress import tick
 
 
 class Clock:

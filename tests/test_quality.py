@@ -1,4 +1,4 @@
-"""Field-quality kernels (pipeline.quality) against direct NumPy computations on sparse grids
+"""Field-quality kernels (pipeline.distance.quality) against direct NumPy computations on sparse grids
 with block borders, missing neighbour blocks and inactive voxels."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 from test_eikonal import band_grid, sphere, torus
 
-from pipeline.grid import BlockGrid
-from pipeline.quality import central_gradient, extra_zero_crossings, gradient_stats
+from pipeline.distance.quality import central_gradient, extra_zero_crossings, gradient_stats
+from pipeline.sparse.grid import BlockGrid
 
 
 def _holes(grid: BlockGrid, seed: int) -> BlockGrid:

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.grid import BlockGrid
-from pipeline.quality import deviation_on_blocks
+from pipeline.distance.quality import deviation_on_blocks
+from pipeline.sparse.grid import BlockGrid
 from tests.test_eikonal import band_grid, sphere_of
 
 

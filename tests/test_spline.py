@@ -1,4 +1,4 @@
-"""Tricubic B-spline (pipeline.spline) and the continuous HFRep field (pipeline.hfrep)."""
+"""Tricubic B-spline (pipeline.distance.spline) and the continuous HFRep field (pipeline.distance.hfrep)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_eikonal import band_grid, sphere, torus
 
-from pipeline.eikonal import solve_distance
-from pipeline.hfrep import HFRepField, hfrep_field, step_function
-from pipeline.spline import TricubicSpline
+from pipeline.distance.eikonal import solve_distance
+from pipeline.distance.hfrep import HFRepField, hfrep_field, step_function
+from pipeline.distance.spline import TricubicSpline
 
 N = 64
 H = 2.0 / N

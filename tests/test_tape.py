@@ -1,4 +1,4 @@
-"""Conformance of the compiled tape (pipeline.tape) over every node type and random trees:
+"""Conformance of the compiled tape (pipeline.model.tape) over every node type and random trees:
 
 - the tape's values equal the node-by-node evaluation (to float rounding);
 - its interval bounds contain every value in the box;
@@ -15,8 +15,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline import tape as pt
-from pipeline.config import load_job
+from pipeline.job.config import load_job
+from pipeline.model import tape as pt
 from tests.test_written_grids import frep_config, tree
 
 NODES = {
@@ -119,7 +119,7 @@ def test_every_traceable_node_conforms(tmp_path, name) -> None:
 
 
 def test_every_registered_node_type_is_covered() -> None:
-    from pipeline.nodes import REGISTRY
+    from pipeline.oracles import REGISTRY
 
     covered = {k.split("_")[0] for k in NODES} | {"mesh", "grid", "hfrep", "component"}
     assert set(REGISTRY) <= covered, set(REGISTRY) - covered
@@ -182,14 +182,14 @@ def _ico(tmp_path, name="ico.off", k=2, r=0.7):
 
 
 def test_min_max_mesh_is_one_oracle_clause_specialised_to_a_start_node(tmp_path) -> None:
-    """A min_max BSP-field is one tape clause (pipeline.bsp_minmax's short-circuit kernels): the
+    """A min_max BSP-field is one tape clause (pipeline.mesh.bsp_minmax's short-circuit kernels): the
     tape equals the BSP kernel to the bit, bounds hold, and a small cell on the surface starts
     from a node below the root (its voxels skip the root path and
     the subtrees the cell's bounds exclude). A torus: its tree's root is a chain of POS_ONLY nodes
     (min of planes), which a cell skips down to the first plane near it."""
     import trimesh
 
-    from pipeline.bsp import _eval_tree, _subtree_sizes
+    from pipeline.mesh.bsp import _eval_tree, _subtree_sizes
 
     path = tmp_path / "torus.off"
     trimesh.creation.torus(0.5, 0.2, major_sections=24, minor_sections=12).export(str(path))
@@ -254,7 +254,7 @@ def test_block_specialised_mesh_tree_is_exact(tmp_path, seed, h) -> None:
     to the bit, for a deep-chain displaced icosphere moved by a rotation (boxes of transformed
     coordinates), at blocks on the surface and anywhere in the domain; the specialised tree of a
     surface block is a small part of the whole."""
-    from pipeline.bsp_minmax import specialise_box
+    from pipeline.mesh.bsp_minmax import specialise_box
 
     path = _displaced_ico(tmp_path)
     job = job_of(tmp_path, f"rotate: {{axis: [1, 2, 0], angle: 25, of: {{mesh: {{path: {path}, rfunc: min_max}}}}}}")
@@ -365,7 +365,7 @@ def test_surface_bvh_query_is_exact() -> None:
     of many sizes around a torus; a margin makes it say yes for a box that far from the surface."""
     import trimesh
 
-    from pipeline.bsp_minmax import BVH_STACK, box_near_surface, surface_bvh
+    from pipeline.mesh.bsp_minmax import BVH_STACK, box_near_surface, surface_bvh
 
     m = trimesh.creation.torus(0.6, 0.25, major_sections=24, minor_sections=12)
     tris = np.ascontiguousarray(m.vertices[m.faces], dtype=np.float64)
@@ -398,8 +398,8 @@ def test_closed_mesh_cells_are_culled_by_the_surface(tmp_path) -> None:
     values are the walk's; an open mesh has no surface and keeps the interval walk."""
     import trimesh
 
-    from pipeline.bsp import BSPField
-    from pipeline.voxelise import sample_blocks
+    from pipeline.mesh.bsp import BSPField
+    from pipeline.voxel.voxelise import sample_blocks
     from tests.test_written_grids import _box_with_holes
 
     mesh = _box_with_holes()
@@ -487,7 +487,7 @@ def test_fused_leaves_equal_blocks_then_assembly(tmp_path, model) -> None:
     """voxelise_tape (blocks evaluated, band-marked and written into their leaves in one compiled
     pass) gives assemble(sample_blocks(...))'s leaves, known voxels' values, band, proven boxes and
     statistics, on a domain whose low faces cut leaves and blocks."""
-    from pipeline.voxelise import assemble, sample_blocks, voxelise_tape
+    from pipeline.voxel.voxelise import assemble, sample_blocks, voxelise_tape
     from tests.test_written_grids import _box_with_holes
 
     if model == "mesh":
@@ -517,7 +517,7 @@ def test_specialise_shares_unchanged_tapes(tmp_path) -> None:
     """A box whose decisions change nothing points at its parent's clauses (the pool then starts
     with the parents' pool): every box's tape has the clauses that specialising it alone gives,
     and the final pool of the demo's r0 model is smaller than one copy per block."""
-    from pipeline import voxelise as vx
+    from pipeline.voxel import voxelise as vx
 
     cfg = tmp_path / "m.yaml"
     cfg.write_text(frep_config(

@@ -1,5 +1,5 @@
-"""Revised affine arithmetic over the compiled tape (pipeline.tape_affine) against the node-by-node
-Python RAA (``model.bound``, pipeline.affine / pipeline.ops) and against the field's values:
+"""Revised affine arithmetic over the compiled tape (pipeline.model.tape_affine) against the node-by-node
+Python RAA (``model.bound``, pipeline.field.affine / pipeline.model.ops) and against the field's values:
 
 - inclusion: the tape's values at random points of a box (and at its corners) lie within the
   compiled bound, for every opcode the tape can emit (the coverage is checked), random trees and
@@ -22,8 +22,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline import tape as pt
-from pipeline.tape_affine import affine_bounds, clause_forms
+from pipeline.model import tape as pt
+from pipeline.model.tape_affine import affine_bounds, clause_forms
 from tests.test_tape import NODES, _ico, job_of
 from tests.test_written_grids import tree
 

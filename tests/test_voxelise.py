@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.grid import frep_to_vdb, vdb
-from pipeline.nodes import REGISTRY
-from pipeline.voxelise import enumerate_cells, voxelise
+from pipeline.oracles import REGISTRY
+from pipeline.sparse.grid import frep_to_vdb, vdb
+from pipeline.voxel.voxelise import enumerate_cells, voxelise
 
 
 def node(kind: str, **params):
@@ -114,8 +114,8 @@ def test_vdb_round_trip(tmp_path):
 
 
 def test_nonfinite_field_is_reported():
-    from pipeline.nodes.expr import Expr
-    from pipeline.voxelise import NonFiniteField
+    from pipeline.model.expr import Expr
+    from pipeline.voxel.voxelise import NonFiniteField
 
     imin, imax, h = cube_domain(32)
     bad = Expr(Expr.Params(formula="1/x - 2"))
@@ -148,8 +148,8 @@ def test_close_band_activates_both_sides_of_every_sign_change():
     """close_band (one parallel pass, each leaf setting only its own voxels from its 6 neighbour
     leaves) against a dense reference, on leaves that touch along every axis, both ways, with
     gaps, unknown voxels and zeros (0 counts as outside)."""
-    from pipeline.grid import BlockGrid
-    from pipeline.voxelise import close_band
+    from pipeline.sparse.grid import BlockGrid
+    from pipeline.voxel.voxelise import close_band
 
     rng = np.random.default_rng(7)
     cells = np.array([(i, j, k) for i in range(4) for j in range(3) for k in range(3)])
@@ -172,7 +172,7 @@ def test_coalesced_boxes_fill_the_same_pruned_tree():
     """coalesce_boxes: the same voxels as the boxes (random cells of a random octree, some
     cut by a domain's faces), fewer boxes, and one fill per merged box gives, after prune,
     the tree of one fill per box (node counts, values)."""
-    from pipeline.grid import coalesce_boxes
+    from pipeline.sparse.grid import coalesce_boxes
 
     rng = np.random.default_rng(3)
     boxes = []

@@ -25,7 +25,7 @@ import trimesh
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from pipeline.grid import vdb
+from pipeline.sparse.grid import vdb
 from tests.written_grids import model_values, read_box, run_config, unclosed_pairs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -95,7 +95,7 @@ def test_long_r0_union_stays_finite_and_json(tmp_path) -> None:
 def test_r0_magnitude_grows_at_most_linearly_far_away() -> None:
     """Measured: a deep r0 tree (a BSP-field of an icosphere, depth > 100) keeps |f| within a
     few model sizes everywhere, where eq. 2 alone reaches 1e38 and beyond."""
-    from pipeline.bsp import BSPField
+    from pipeline.mesh.bsp import BSPField
 
     mesh = trimesh.creation.icosphere(3, 0.8)
     field = BSPField.from_mesh(mesh, rfunc="r0")
@@ -303,7 +303,7 @@ def test_cgal_meshes_written_sign(tmp_path, name, family, res) -> None:
 
 def _large_real_meshes() -> list[str]:
     """The closed CGAL meshes above KD_MIN triangles (their optimised trees start with median cuts)."""
-    from pipeline.bsp import KD_MIN
+    from pipeline.mesh.bsp import KD_MIN
 
     if not MESHES.is_dir():
         return ["<absent>"]

@@ -23,9 +23,9 @@ def outputs(tmp_path_factory) -> dict:
     """Every export file for the two-sphere scene, written by the pipeline's own writers."""
     from test_export_files import VOXEL, sample_grids, sample_manifest
 
-    from pipeline import previews, report, vtkio
-    from pipeline.grid import vdb
-    from pipeline.vdbio import set_grid_metadata, write_vdb
+    from pipeline.io import previews, report, vtkio
+    from pipeline.io.vdbio import set_grid_metadata, write_vdb
+    from pipeline.sparse.grid import vdb
 
     out = tmp_path_factory.mktemp("spheres")
     grids = sample_grids()

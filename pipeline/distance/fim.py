@@ -1,0 +1,563 @@
+"""Numba kernels of the block Fast Iterative Method (Jeong & Whitaker 2008) on 8^3 blocks.
+
+Used by :mod:`pipeline.distance.eikonal`. The distance array ``d`` is (L,8,8,8) in voxel units; the
+(L,27) table ``nbr27`` gives, for every block, the block at each offset (-1..1)^3 (row
+``(dx+1)*9 + (dy+1)*3 + (dz+1)``, -1 where absent), so a kernel can read any voxel up to 8
+steps outside its block without hashing.
+
+Two upwind discretisations of |grad u| = 1 share one solver (:func:`upwind3`):
+
+* first order (Godunov): per axis the smaller neighbour ``a1``, term ``(u - a1)^2``;
+* second order (Sethian 1999, "Fast marching methods", section 4.3): where the next voxel
+  on the same side ``a2`` is known and ``a2 <= a1``, the one-sided difference
+  ``(3u - 4a1 + a2) / 2`` replaces ``u - a1``: term ``(9/4) (u - (4a1 - a2)/3)^2``. When
+  that voxel lies across the surface its value enters with a minus sign: the stencil then
+  differentiates the signed distance, which is smooth there (the unsigned one has a kink).
+
+The second-order scheme is not monotone, so it is not run from scratch: the first-order
+fixed point is computed first (monotone, converges from above) and the second-order FIM then
+iterates from it, accepting changes in either direction, until no voxel moves by more than
+``tol``. Its accuracy also needs an initial layer accurate to better than second order:
+:func:`init_interface` projects every voxel next to a sign change onto the zero set of the
+local quadratic fit of frep (Chopp 2001, "Some improvements of the fast marching method",
+closest-point iteration).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numba import njit
+
+FREE, FROZEN, EXCLUDED = 0, 1, 2
+PARALLEL_BLOCKS = 4096  # blocks (2 M voxels) from which the FIM runs its waves on all threads
+FACE_ROWS = np.array([4, 22, 10, 16, 12, 14])  # nbr27 rows of -x, +x, -y, +y, -z, +z
+QUADRIC_RESIDUAL = 0.02  # voxels: largest miss of the quadratic model at its stencil corners
+REL32 = 2.0**-22  # two float32 units relative: changes below them are rounding, not progress
+
+
+@njit(cache=True, inline="always")
+def locate(nbr27, b, i, j, k):
+    """(block, i, j, k) of local coordinates of block b that may lie in [-8, 15] on each axis;
+    block -1 when that block does not exist."""
+    di = -1 if i < 0 else (1 if i > 7 else 0)
+    dj = -1 if j < 0 else (1 if j > 7 else 0)
+    dk = -1 if k < 0 else (1 if k > 7 else 0)
+    n = nbr27[b, (di + 1) * 9 + (dj + 1) * 3 + (dk + 1)]
+    return n, i - 8 * di, j - 8 * dj, k - 8 * dk
+
+
+@njit(cache=True, inline="always")
+def upwind3(b0, w0, b1, w1, b2, w2):
+    """Solve sum_a w_a (u - b_a)^2 = 1 with the Godunov choice of upwind axes: ``w = c^2`` per
+    axis (1 first order, 9/4 second order), ``b = inf`` for an axis without an upwind
+    neighbour (at least one finite). Axes join in increasing ``b`` while the solution exceeds
+    the next value (Jeong & Whitaker 2008, eq. 3; Sethian 1999, eq. 4.6): a three-element
+    sorting network and the closed forms for one, two and three axes."""
+    if b0 > b1:
+        b0, b1, w0, w1 = b1, b0, w1, w0
+    if b1 > b2:
+        b1, b2, w1, w2 = b2, b1, w2, w1
+    if b0 > b1:
+        b0, b1, w0, w1 = b1, b0, w1, w0
+    u = b0 + 1.0 / math.sqrt(w0)
+    if u <= b1:
+        return u
+    a = w0 + w1
+    s = w0 * b0 + w1 * b1
+    disc = s * s - a * (w0 * b0 * b0 + w1 * b1 * b1 - 1.0)
+    if disc < 0.0:
+        return u
+    u = (s + math.sqrt(disc)) / a
+    if u <= b2:
+        return u
+    a += w2
+    s += w2 * b2
+    disc = s * s - a * (w0 * b0 * b0 + w1 * b1 * b1 + w2 * b2 * b2 - 1.0)
+    if disc < 0.0:
+        return u
+    return (s + math.sqrt(disc)) / a
+
+
+@njit(cache=True)
+def _load_block(d, inside, nbr27, b, buf, sbuf):
+    """Copy block b with two ghost layers on each face into the (12,12,12) buffers (distance
+    and side of the surface; edges and corners are not read by the axis stencils)."""
+    for i in range(8):
+        for j in range(8):
+            for k in range(8):
+                buf[i + 2, j + 2, k + 2] = d[b, i, j, k]
+                sbuf[i + 2, j + 2, k + 2] = inside[b, i, j, k]
+    for g in range(2):  # ghost layer g: buffer index 1-g below the block, 10+g above
+        lo, hi = 1 - g, 10 + g
+        src_lo, src_hi = 7 - g, g  # the neighbour's voxel layer that lies there
+        n0, n1 = nbr27[b, 4], nbr27[b, 22]
+        n2, n3 = nbr27[b, 10], nbr27[b, 16]
+        n4, n5 = nbr27[b, 12], nbr27[b, 14]
+        for u in range(8):
+            for v in range(8):
+                _ghost(d, inside, n0, src_lo, u, v, buf, sbuf, lo, u + 2, v + 2)
+                _ghost(d, inside, n1, src_hi, u, v, buf, sbuf, hi, u + 2, v + 2)
+                _ghost(d, inside, n2, u, src_lo, v, buf, sbuf, u + 2, lo, v + 2)
+                _ghost(d, inside, n3, u, src_hi, v, buf, sbuf, u + 2, hi, v + 2)
+                _ghost(d, inside, n4, u, v, src_lo, buf, sbuf, u + 2, v + 2, lo)
+                _ghost(d, inside, n5, u, v, src_hi, buf, sbuf, u + 2, v + 2, hi)
+
+
+@njit(cache=True, inline="always")
+def _ghost(d, inside, n, i, j, k, buf, sbuf, bi, bj, bk):
+    if n < 0:
+        buf[bi, bj, bk] = np.inf
+        sbuf[bi, bj, bk] = False
+    else:
+        buf[bi, bj, bk] = d[n, i, j, k]
+        sbuf[bi, bj, bk] = inside[n, i, j, k]
+
+
+@njit(cache=True, inline="always")
+def _axis_term(buf, sbuf, i, j, k, di, dj, dk, me, order2):
+    """(b, c^2) of one axis at buffer voxel (i, j, k): the upwind side's value (b = inf when
+    neither neighbour is known)."""
+    lo1 = buf[i - di, j - dj, k - dk]
+    hi1 = buf[i + di, j + dj, k + dk]
+    if lo1 <= hi1:
+        a1, a2, s2 = lo1, buf[i - 2 * di, j - 2 * dj, k - 2 * dk], sbuf[i - 2 * di, j - 2 * dj, k - 2 * dk]
+    else:
+        a1, a2, s2 = hi1, buf[i + 2 * di, j + 2 * dj, k + 2 * dk], sbuf[i + 2 * di, j + 2 * dj, k + 2 * dk]
+    if a1 == np.inf:
+        return np.inf, 1.0
+    # across the surface the unsigned distance has a kink but the signed one is smooth: use
+    # the signed value of a second neighbour on the other side. An unknown one (inf; a ghost of
+    # an absent block reads as outside) stays unknown: negated it would pass the test below
+    # and make the axis term inf, dropping the known neighbour a1
+    if s2 != me and a2 != np.inf:
+        a2 = -a2
+    if order2 and a2 <= a1:
+        return (4.0 * a1 - a2) / 3.0, 2.25
+    return a1, 1.0
+
+
+@njit(cache=True)
+def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf, sbuf, fbuf, limit_in=np.inf,
+                dirty=63):
+    """Gauss-Seidel sweeps (alternating the 8 orderings) until block b converges.
+
+    First order accepts only decreases (monotone scheme from above); second order accepts
+    any change larger than ``tol`` (plus two float32 units: values are rounded to float32,
+    the distance array's type, as they are computed). A value above ``limit`` (outside voxels) or ``limit_in``
+    (inside voxels) is never accepted. Returns (bitmask of faces whose ghost layers changed,
+    voxel updates, sweeps).
+
+    ``fbuf`` (12,12,12) flags the voxels whose stencil changed: the first sweep evaluates every
+    voxel, later ones only those with an axis neighbour within ``depth`` (the stencil's reach)
+    updated since their last evaluation. The update of a voxel is a function of those
+    neighbours (its own value only enters the acceptance test, and it is unchanged since the
+    voxel's last evaluation, or set by it), so a skipped voxel would not have changed: the
+    same updates in the same order as evaluating every voxel in every sweep, at less cost.
+    """
+    _load_block(d, inside, nbr27, b, buf, sbuf)
+    depth = 2 if order2 else 1  # ghost layers a neighbour reads
+    faces = 0
+    updates = 0
+    sweeps = 0
+    st = state[b]
+    if dirty == 63:
+        fbuf[:] = True
+    else:  # the block was stable after its last visit: only voxels that read a changed ghost layer
+        fbuf[:] = False
+        for r in range(depth):
+            if dirty & 1:
+                fbuf[2 + r, 2:10, 2:10] = True
+            if dirty & 2:
+                fbuf[9 - r, 2:10, 2:10] = True
+            if dirty & 4:
+                fbuf[2:10, 2 + r, 2:10] = True
+            if dirty & 8:
+                fbuf[2:10, 9 - r, 2:10] = True
+            if dirty & 16:
+                fbuf[2:10, 2:10, 2 + r] = True
+            if dirty & 32:
+                fbuf[2:10, 2:10, 9 - r] = True
+    for it in range(max_sweeps):
+        sweeps += 1
+        changed = False
+        for ii in range(8):
+            i = ii if (it & 1) == 0 else 7 - ii
+            for jj in range(8):
+                j = jj if (it & 2) == 0 else 7 - jj
+                for kk in range(8):
+                    k = kk if (it & 4) == 0 else 7 - kk
+                    if not fbuf[i + 2, j + 2, k + 2]:
+                        continue
+                    fbuf[i + 2, j + 2, k + 2] = False
+                    if st[i, j, k] != FREE:
+                        continue
+                    me = sbuf[i + 2, j + 2, k + 2]
+                    bx, wx = _axis_term(buf, sbuf, i + 2, j + 2, k + 2, 1, 0, 0, me, order2)
+                    by, wy = _axis_term(buf, sbuf, i + 2, j + 2, k + 2, 0, 1, 0, me, order2)
+                    bz, wz = _axis_term(buf, sbuf, i + 2, j + 2, k + 2, 0, 0, 1, me, order2)
+                    if bx == np.inf and by == np.inf and bz == np.inf:
+                        continue
+                    u = upwind3(bx, wx, by, wy, bz, wz)
+                    if u > (limit_in if me else limit):
+                        continue
+                    # values are kept as float32 (what d stores): a block then stores exactly
+                    # what it computed, and a change below two float32 units is no change, so
+                    # rounding cannot move a voxel back and forth between visits
+                    u = np.float64(np.float32(u))
+                    thr = tol + REL32 * u
+                    old = buf[i + 2, j + 2, k + 2]
+                    if order2:
+                        if not abs(u - old) > thr:
+                            continue
+                    elif not u < old - thr:
+                        continue
+                    buf[i + 2, j + 2, k + 2] = u
+                    updates += 1
+                    changed = True
+                    for r in range(1, depth + 1):  # the voxels whose stencil holds this one
+                        fbuf[i + 2 - r, j + 2, k + 2] = True
+                        fbuf[i + 2 + r, j + 2, k + 2] = True
+                        fbuf[i + 2, j + 2 - r, k + 2] = True
+                        fbuf[i + 2, j + 2 + r, k + 2] = True
+                        fbuf[i + 2, j + 2, k + 2 - r] = True
+                        fbuf[i + 2, j + 2, k + 2 + r] = True
+                    faces |= (i < depth) * 1 | (i >= 8 - depth) * 2 | (j < depth) * 4
+                    faces |= (j >= 8 - depth) * 8 | (k < depth) * 16 | (k >= 8 - depth) * 32
+        if not changed:
+            break
+    if changed:  # stopped by max_sweeps: not stable, the next visit starts from every voxel
+        faces |= 64
+    if updates:
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    d[b, i, j, k] = buf[i + 2, j + 2, k + 2]
+    return faces, updates, sweeps
+
+
+def fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, limit_in=np.inf):
+    """Block Fast Iterative Method (Jeong & Whitaker 2008, Alg. 1 with blocks as list items),
+    red-black over the block lattice.
+
+    ``colour``: parity of each block's lattice coordinates (0/1). The active list is kept per
+    colour and processed in waves, one colour at a time: blocks of one colour are never face
+    neighbours, so a wave relaxes its blocks in parallel without races - each writes only its
+    own voxels and reads ghost layers of the other colour, which no one writes during the
+    wave. The result does not depend on the number of threads. A relaxed block puts the face
+    neighbours whose ghost layers it changed on the list (of the other colour).
+    ``max_visits`` bounds the work of the (non-monotone) second-order pass. ``limit`` /
+    ``limit_in``: largest value accepted outside / inside (voxels). Small problems
+    run the serial kernel (a parallel launch costs more than they take). Returns (block
+    visits, voxel updates, sweeps, converged).
+    """
+    if len(d) < PARALLEL_BLOCKS:
+        return _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits,
+                           float(limit_in))
+    chunks = 2 * numba.get_num_threads()  # two chunks per thread: some balance for uneven blocks
+    return _fim_parallel(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits,
+                         chunks, float(limit_in))
+
+
+@njit(cache=True)
+def _seed_lists(colour, seeds, nb):
+    """(per-colour lists, their lengths, on-list flags, dirty faces per block: all at first)."""
+    lists = np.empty((2, nb), dtype=np.int64)
+    counts = np.zeros(2, dtype=np.int64)
+    on_list = np.zeros(nb, dtype=np.bool_)
+    for s in seeds:
+        if not on_list[s]:
+            on_list[s] = True
+            c = colour[s]
+            lists[c, counts[c]] = s
+            counts[c] += 1
+    dirty = np.full(nb, 63, dtype=np.int64)
+    return lists, counts, on_list, dirty
+
+
+@njit(cache=True)
+def _take_wave(lists, counts, on_list, c):
+    """The blocks of colour c on the list, removed from it."""
+    m = counts[c]
+    work = lists[c, :m].copy()
+    counts[c] = 0
+    for t in range(m):
+        on_list[work[t]] = False
+    return work
+
+
+@njit(cache=True)
+def _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty):
+    """After a wave (``out`` rows: faces, updates, sweeps per block): the face neighbours whose
+    ghost layers changed go on their colour's list and have that face marked dirty (serial, in
+    list order: the result is deterministic); the wave's blocks are clean again unless they
+    stopped at max_sweeps. Returns (visits, updates, sweeps) of the wave."""
+    for t in range(len(work)):
+        dirty[work[t]] = 63 if out[t, 0] & 64 else 0
+    for t in range(len(work)):
+        b = work[t]
+        for f in range(6):
+            if out[t, 0] & (1 << f):
+                n = nbr27[b, FACE_ROWS[f]]
+                if n >= 0:
+                    dirty[n] |= 1 << (f ^ 1)  # n's ghost layer on the face it shares with b
+                if n >= 0 and not on_list[n]:
+                    on_list[n] = True
+                    cn = colour[n]
+                    lists[cn, counts[cn]] = n
+                    counts[cn] += 1
+    return len(work), out[:, 1].sum(), out[:, 2].sum()
+
+
+@njit(cache=True)
+def _relax_range(d, state, inside, nbr27, work, lo, hi, limit, tol, max_sweeps, order2, buf, sbuf, out, limit_in,
+                 dirty):
+    fbuf = np.empty((12, 12, 12), dtype=np.bool_)
+    for t in range(lo, hi):
+        out[t, 0], out[t, 1], out[t, 2] = relax_block(d, state, inside, nbr27, work[t], limit, tol, max_sweeps,
+                                                      order2, buf, sbuf, fbuf, limit_in, dirty[work[t]])
+
+
+@njit(cache=True)
+def _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, limit_in):
+    """:func:`fim` on one thread (the same waves, so the same result)."""
+    lists, counts, on_list, dirty = _seed_lists(colour, seeds, d.shape[0])
+    buf = np.empty((12, 12, 12))
+    sbuf = np.zeros((12, 12, 12), dtype=np.bool_)
+    visits, updates, sweeps = 0, 0, 0
+    c = 0 if counts[0] >= counts[1] else 1
+    while counts[0] + counts[1] > 0:
+        if visits >= max_visits:
+            return visits, updates, sweeps, False
+        if counts[c] > 0:
+            work = _take_wave(lists, counts, on_list, c)
+            out = np.zeros((len(work), 3), dtype=np.int64)
+            _relax_range(d, state, inside, nbr27, work, 0, len(work), limit, tol, max_sweeps, order2, buf, sbuf, out,
+                         limit_in, dirty)
+            v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty)
+            visits, updates, sweeps = visits + v, updates + u, sweeps + w
+        c = 1 - c
+    return visits, updates, sweeps, True
+
+
+@njit(cache=True, parallel=True)
+def _fim_parallel(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, chunks,
+                  limit_in):
+    """:func:`fim` with each wave split into ``chunks`` ranges relaxed in parallel (one buffer
+    per range)."""
+    lists, counts, on_list, dirty = _seed_lists(colour, seeds, d.shape[0])
+    bufs = np.empty((chunks, 12, 12, 12))
+    sbufs = np.zeros((chunks, 12, 12, 12), dtype=np.bool_)
+    visits, updates, sweeps = 0, 0, 0
+    c = 0 if counts[0] >= counts[1] else 1
+    while counts[0] + counts[1] > 0:
+        if visits >= max_visits:
+            return visits, updates, sweeps, False
+        if counts[c] > 0:
+            work = _take_wave(lists, counts, on_list, c)
+            m = len(work)
+            out = np.zeros((m, 3), dtype=np.int64)
+            k = min(chunks, m)
+            for ch in numba.prange(k):
+                _relax_range(d, state, inside, nbr27, work, ch * m // k, (ch + 1) * m // k, limit, tol, max_sweeps,
+                             order2, bufs[ch], sbufs[ch], out, limit_in, dirty)
+            v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty)
+            visits, updates, sweeps = visits + v, updates + u, sweeps + w
+        c = 1 - c
+    return visits, updates, sweeps, True
+
+
+def block_colour(origins: np.ndarray) -> np.ndarray:
+    """Red-black colour (0/1) of blocks: parity of the sum of their lattice coordinates."""
+    return (((origins >> 3).sum(axis=1)) & 1).astype(np.int8)
+
+
+# --- initialisation next to the zero set -------------------------------------------------------
+@njit(cache=True)
+def _load_frep(f, fact, brow, nbr27, b, fb, ab):
+    """Block b's frep values and their known flags with one layer of every neighbour (faces,
+    edges, corners) into (10,10,10) buffers (local index + 1; block n of the working set is
+    row ``brow[n]`` of ``f``, unknown where -1)."""
+    r0 = brow[b]
+    for i in range(-1, 9):
+        for j in range(-1, 9):
+            for k in range(-1, 9):
+                if 0 <= i < 8 and 0 <= j < 8 and 0 <= k < 8:
+                    ab[i + 1, j + 1, k + 1] = fact[r0, i, j, k]
+                    fb[i + 1, j + 1, k + 1] = f[r0, i, j, k]
+                    continue
+                n, li, lj, lk = locate(nbr27, b, i, j, k)
+                r = brow[n] if n >= 0 else -1
+                if r < 0 or not fact[r, li, lj, lk]:
+                    ab[i + 1, j + 1, k + 1] = False
+                    fb[i + 1, j + 1, k + 1] = 0.0
+                else:
+                    ab[i + 1, j + 1, k + 1] = True
+                    fb[i + 1, j + 1, k + 1] = f[r, li, lj, lk]
+
+
+@njit(cache=True)
+def _quadric_fit(fb, ab, i, j, k, g, hess, vals):
+    """Gradient and Hessian of frep at buffer voxel (i, j, k) (:func:`_load_frep`) by central
+    differences on its 3x3x3 neighbourhood (the local quadratic model). False when a neighbour
+    is not in the band, or when the model misses the eight corner samples (which it does not
+    use) by more than ``QUADRIC_RESIDUAL`` voxels: a kink of frep (a CSG edge, min/max) inside
+    the stencil. ``vals``: a (3,3,3) work buffer."""
+    for di in range(3):
+        for dj in range(3):
+            for dk in range(3):
+                if not ab[i + di - 1, j + dj - 1, k + dk - 1]:
+                    return False
+                vals[di, dj, dk] = fb[i + di - 1, j + dj - 1, k + dk - 1]
+    c = vals[1, 1, 1]
+    g[0] = 0.5 * (vals[2, 1, 1] - vals[0, 1, 1])
+    g[1] = 0.5 * (vals[1, 2, 1] - vals[1, 0, 1])
+    g[2] = 0.5 * (vals[1, 1, 2] - vals[1, 1, 0])
+    hess[0, 0] = vals[2, 1, 1] - 2.0 * c + vals[0, 1, 1]
+    hess[1, 1] = vals[1, 2, 1] - 2.0 * c + vals[1, 0, 1]
+    hess[2, 2] = vals[1, 1, 2] - 2.0 * c + vals[1, 1, 0]
+    hess[0, 1] = hess[1, 0] = 0.25 * (vals[2, 2, 1] - vals[2, 0, 1] - vals[0, 2, 1] + vals[0, 0, 1])
+    hess[0, 2] = hess[2, 0] = 0.25 * (vals[2, 1, 2] - vals[2, 1, 0] - vals[0, 1, 2] + vals[0, 1, 0])
+    hess[1, 2] = hess[2, 1] = 0.25 * (vals[1, 2, 2] - vals[1, 2, 0] - vals[1, 0, 2] + vals[1, 0, 0])
+    gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+    if gn == 0.0:
+        return False
+    for si in (-1, 1):
+        for sj in (-1, 1):
+            for sk in (-1, 1):
+                q = c + si * g[0] + sj * g[1] + sk * g[2]
+                q += 0.5 * (hess[0, 0] + hess[1, 1] + hess[2, 2])
+                q += si * sj * hess[0, 1] + si * sk * hess[0, 2] + sj * sk * hess[1, 2]
+                if abs(q - vals[si + 1, sj + 1, sk + 1]) > QUADRIC_RESIDUAL * gn:
+                    return False
+    return True
+
+
+@njit(cache=True)
+def closest_point_distance(f0, g, hess, iterations=12):
+    """Distance from the origin to the zero set of q(x) = f0 + g.x + x.H.x / 2 (voxel units).
+
+    Chopp (2001) closest-point iteration: a Newton step onto q = 0 along grad q plus the step
+    that removes the tangential part of (origin - x). Returns inf when it does not converge.
+    """
+    x = np.zeros(3)
+    gx = np.empty(3)
+    step = np.inf
+    for _ in range(iterations):
+        for a in range(3):
+            gx[a] = g[a] + hess[a, 0] * x[0] + hess[a, 1] * x[1] + hess[a, 2] * x[2]
+        qx = f0
+        for a in range(3):
+            qx += x[a] * (g[a] + 0.5 * (hess[a, 0] * x[0] + hess[a, 1] * x[1] + hess[a, 2] * x[2]))
+        g2 = gx[0] * gx[0] + gx[1] * gx[1] + gx[2] * gx[2]
+        if g2 == 0.0:
+            return np.inf
+        yg = -(x[0] * gx[0] + x[1] * gx[1] + x[2] * gx[2])
+        step = 0.0
+        for a in range(3):
+            delta = -qx * gx[a] / g2 + (-x[a] - yg * gx[a] / g2)
+            x[a] += delta
+            step += delta * delta
+        if step < 1e-24:
+            break
+    if step > 1e-12:
+        return np.inf
+    return math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
+
+
+def init_interface(f, fact, d, state, nbr27, quadric, brow=None):
+    """Freeze the voxels next to a sign change with sub-voxel distances (voxel units).
+
+    A voxel with an axis neighbour of opposite sign gets, when ``quadric`` is set and its
+    3x3x3 neighbourhood is in the band, the distance to the zero set of the local quadratic
+    model (third-order accurate for a smooth surface: what the second-order scheme needs);
+    otherwise ``|f| / |grad f|``, the distance to the tangent plane. Both are capped by the
+    linearly interpolated axis crossings (points on the surface up to O(h^2)); the quadric
+    distance is rejected when it exceeds that cap by more than a tenth of a voxel (a kink of
+    the surface inside the stencil). Only blocks with band voxels are visited, in parallel
+    (each writes only its own voxels and reads frep, which nobody writes: the result does not
+    depend on the threads). ``brow``: row of ``f`` / ``fact`` of every block of ``d`` (-1: no
+    frep values there); None when they are aligned with ``d``. Returns (frozen voxels, voxels
+    initialised by the quadric).
+    """
+    if brow is None:
+        brow = np.arange(len(d))
+    has = np.zeros(len(d), bool)  # blocks with an active frep voxel
+    has[brow >= 0] = fact.reshape(len(fact), -1).any(axis=1)[brow[brow >= 0]]
+    rows = np.flatnonzero(has)
+    counts = np.zeros((len(rows), 2), np.int64)
+    if len(rows):
+        _init_rows(f, fact, brow, d, state, nbr27, quadric, rows, counts)
+    return int(counts[:, 0].sum()), int(counts[:, 1].sum())
+
+
+@njit(cache=True, parallel=True)
+def _init_rows(f, fact, brow, d, state, nbr27, quadric, rows, counts):
+    """:func:`init_interface` over the blocks ``rows``; (frozen, quadric) per row into ``counts``."""
+    for t in numba.prange(len(rows)):
+        b = rows[t]
+        r = brow[b]
+        fbuf = np.empty((10, 10, 10))  # the block with a layer of its neighbours: no lookups per voxel
+        abuf = np.empty((10, 10, 10), np.bool_)
+        _load_frep(f, fact, brow, nbr27, b, fbuf, abuf)
+        g = np.empty(3)
+        hess = np.empty((3, 3))
+        vals = np.empty((3, 3, 3))
+        count = 0
+        n_quad = 0
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if not fact[r, i, j, k] or state[b, i, j, k] == EXCLUDED:
+                        continue
+                    fv = f[r, i, j, k]
+                    if fv == 0.0:
+                        d[b, i, j, k] = 0.0
+                        state[b, i, j, k] = FROZEN
+                        count += 1
+                        continue
+                    cap, g2 = _crossing_cap(fbuf, abuf, i + 1, j + 1, k + 1, fv)
+                    if cap == np.inf:
+                        continue
+                    dist = np.inf
+                    if quadric and _quadric_fit(fbuf, abuf, i + 1, j + 1, k + 1, g, hess, vals):
+                        dist = closest_point_distance(fv, g, hess)
+                        if dist > cap + 0.1:
+                            dist = np.inf
+                        else:
+                            n_quad += 1
+                    if dist == np.inf:
+                        dist = min(abs(fv) / math.sqrt(g2) if g2 > 0.0 else cap, cap)
+                    d[b, i, j, k] = dist
+                    state[b, i, j, k] = FROZEN
+                    count += 1
+        counts[t, 0] = count
+        counts[t, 1] = n_quad
+
+
+@njit(cache=True)
+def _crossing_cap(fb, ab, i, j, k, fv):
+    """(nearest linearly interpolated axis crossing, |grad f|^2 by central differences) at
+    buffer voxel (i, j, k) (:func:`_load_frep`)."""
+    cap = np.inf
+    g2 = 0.0
+    for axis in range(3):
+        di, dj, dk = int(axis == 0), int(axis == 1), int(axis == 2)
+        fl, al = fb[i - di, j - dj, k - dk], ab[i - di, j - dj, k - dk]
+        fh, ah = fb[i + di, j + dj, k + dk], ab[i + di, j + dj, k + dk]
+        if al and (fv > 0.0) != (fl > 0.0):
+            cap = min(cap, fv / (fv - fl))
+        if ah and (fv > 0.0) != (fh > 0.0):
+            cap = min(cap, fv / (fv - fh))
+        if al and ah:
+            gg = 0.5 * (fh - fl)
+        elif ah:
+            gg = fh - fv
+        elif al:
+            gg = fv - fl
+        else:
+            gg = 0.0
+        g2 += gg * gg
+    return cap, g2

@@ -1,0 +1,94 @@
+"""R-functions for set operations on FRep fields (f > 0 inside), on NumPy arrays.
+
+Three families, chosen per operation with ``rfunc``:
+
+* ``min_max`` - bsp-fields eq. 1: exact where one argument dominates, C1-discontinuous on f1 = f2.
+* ``r0``      - bsp-fields eq. 2: f1 + f2 +- sqrt(f1^2 + f2^2); C1 except where f1 = f2 = 0.
+* ``sardf``   - smooth approximation of min/max in the spirit of the SARDF operations
+  [FPSM06] (Fayolle, Pasko, Schmitt, Mirenkov 2006). Outside an angular window around the
+  diagonal f1 = f2 it *is* min/max (so it keeps the distance property of its arguments);
+  inside the window |f1 - f2| < k * rho, rho = sqrt(f1^2 + f2^2), the |f1 - f2| in
+  min = (f1 + f2 - |f1 - f2|)/2 is replaced by the C1 quadratic (u^2 + (k rho)^2) / (2 k rho).
+  The result is homogeneous of degree 1 and C1 away from f1 = f2 = 0; for k < 1 its sign
+  equals the sign of min/max everywhere (the window never meets the lines f1 = 0 or f2 = 0
+  on the positive side), so it is an R-function and keeps the zero set exactly. This is our
+  formulation of the FPSM06 idea; docs/rfunctions.md states how it differs from the paper.
+
+**Magnitude control (issue 12).** Eq. 2 multiplies magnitudes at every level where both
+arguments have one sign (R0 AND of two negatives is up to (2 + sqrt 2) times the larger one),
+so a deep tree — a BSP-tree of depth 500, a union of 140 parts — reaches 1e38 and beyond far
+from the surface and overflows. ``r0`` and ``sardf`` results therefore pass through
+:func:`compress` with a length scale c (the model's size, set by the tree): the identity for
+|f| <= c and c (1 + ln(|f| / c)) beyond. It is C1, increasing and odd, so the result is still an
+R-function with the same sign and zero set, every value within c of zero is exactly eq. 2, and
+no value can grow beyond a few c (the fixed point of c (1 + ln((2 + sqrt 2) f / c)) is
+about 3.5 c). ``scale = inf`` (the default for direct calls) turns it off.
+
+Every function here has an affine-arithmetic twin in :mod:`pipeline.model.ops`, which dispatches on
+the argument type; model nodes call the ``ops`` versions so that evaluation and bounding share
+one formula.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+FAMILIES = ("min_max", "r0", "sardf")
+SARDF_K = 0.5  # half-width of the smoothing window (|f1-f2| < k*rho); must be < 1 to stay an R-function
+
+
+def _smooth_abs(u: np.ndarray, rho: np.ndarray, k: float) -> np.ndarray:
+    """|u| outside the window |u| < k*rho, the C1 quadratic (u^2 + (k rho)^2)/(2 k rho) inside it."""
+    w = k * rho
+    with np.errstate(divide="ignore", invalid="ignore"):
+        quad = (u * u + w * w) / (2.0 * w)
+    return np.where(np.abs(u) < w, quad, np.abs(u))
+
+
+def compress(f: np.ndarray, scale: float) -> np.ndarray:
+    """The identity for |f| <= scale, sign(f) scale (1 + ln(|f| / scale)) beyond (C1, increasing)."""
+    if not np.isfinite(scale):
+        return f
+    a = np.abs(f)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        far = np.copysign(scale * (1.0 + np.log(a / scale)), f)
+    return np.where(a > scale, far, f)
+
+
+def r_and(f1: np.ndarray, f2: np.ndarray, family: str = "r0", k: float = SARDF_K,
+          scale: float = np.inf) -> np.ndarray:
+    """R-conjunction (intersection) of two fields; ``scale``: see :func:`compress`."""
+    if family == "min_max":
+        return np.minimum(f1, f2)
+    return compress(_r_and_raw(f1, f2, family, k), scale)
+
+
+def _r_and_raw(f1: np.ndarray, f2: np.ndarray, family: str, k: float) -> np.ndarray:
+    if family == "r0":
+        # f1 + f2 - sqrt(f1^2 + f2^2), written without cancellation: where f1 + f2 > 0 use the
+        # conjugate form 2 f1 f2 / (f1 + f2 + rho) (the naive form loses the sign when the
+        # arguments differ by many orders of magnitude, as deep BSP trees produce)
+        s = f1 + f2
+        rho = np.hypot(f1, f2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(s > 0, 2.0 * f1 * f2 / (s + rho), s - rho)
+    if family == "sardf":
+        rho = np.hypot(f1, f2)
+        u = f1 - f2
+        inner = np.abs(u) < k * rho
+        with np.errstate(divide="ignore", invalid="ignore"):
+            smooth = 0.5 * (f1 + f2 - _smooth_abs(u, rho, k))
+        # outside the window the value is min itself: return it exactly (no cancellation)
+        return np.where(inner, smooth, np.minimum(f1, f2))
+    raise ValueError(f"unknown R-function family {family!r}")
+
+
+def r_or(f1: np.ndarray, f2: np.ndarray, family: str = "r0", k: float = SARDF_K,
+         scale: float = np.inf) -> np.ndarray:
+    """R-disjunction (union) of two fields: -(-f1 AND -f2), which is exact for all three families."""
+    return -r_and(-f1, -f2, family, k, scale)
+
+
+def r_not(f: np.ndarray) -> np.ndarray:
+    """Complement."""
+    return -f

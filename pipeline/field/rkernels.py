@@ -1,0 +1,45 @@
+"""The R-conjunctions and the compression compiled for kernels (Numba), the scalar forms of
+pipeline.field.rfunctions.
+
+Shared by the tape's clause arithmetic (pipeline.model.tape) and the separated pieces of the
+components stage (pipeline.topology.components), in a module of their own so that the Numba cache
+is keyed by it (pipeline.KERNEL_PROVIDERS): a kernel that inlines one of these keeps its
+machine code only while this file is unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+
+@njit(cache=True, inline="always")
+def r0_and(f1, f2):
+    """f1 + f2 - sqrt(f1^2 + f2^2) (R0 conjunction, eq. 2), in the conjugate form
+    2 f1 f2 / (f1 + f2 + rho) where f1 + f2 > 0 (no cancellation), as rfunctions.r_and."""
+    s = f1 + f2
+    rho = math.hypot(f1, f2)
+    return 2.0 * f1 * f2 / (s + rho) if s > 0 else s - rho
+
+
+@njit(cache=True, inline="always")
+def sardf_and(f1, f2, k):
+    """SARDF conjunction: min(f1, f2) outside the blending window |f1 - f2| < k rho, the
+    smoothed form inside it, as rfunctions.r_and(..., "sardf")."""
+    rho = math.hypot(f1, f2)
+    u = f1 - f2
+    w = k * rho
+    if abs(u) >= w:
+        return min(f1, f2)
+    return 0.5 * (f1 + f2 - (u * u + w * w) / (2.0 * w))
+
+
+@njit(cache=True, inline="always")
+def compress(f, cc):
+    """The scalar form of rfunctions.compress: f for |f| <= cc, sign(f) cc (1 + ln(|f| / cc)) beyond."""
+    a = abs(f)
+    if not a > cc:
+        return f
+    r = cc * (1.0 + math.log(a / cc))
+    return r if f > 0 else -r

@@ -1,0 +1,136 @@
+"""Writing .vdb files atomically, and metadata conversion to the types pyopenvdb stores.
+
+OpenVDB metadata holds str, bool, int, float and 3-vectors (int or float). Everything else
+that a stage wants to record (lists, dicts, None, paths, NumPy scalars) is converted here:
+NumPy scalars to Python numbers, 3-sequences of numbers to vec3i/vec3d, anything nested to a
+JSON string, so that Houdini and Blender show it and scripts can ``json.loads`` it back.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.sparse.grid import vdb
+from pipeline.util.atomic import atomic_path
+
+HALF_EXACT_INT = 2048  # largest integer below which every integer is exact in IEEE half precision
+_INT64 = (-(2**63), 2**63 - 1)
+
+
+
+
+def metadata_value(value: Any) -> str | bool | int | float | tuple:
+    """Convert ``value`` to a type pyopenvdb stores as grid or file metadata."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, bool | str | float):
+        return value
+    if isinstance(value, int):
+        return value if _INT64[0] <= value <= _INT64[1] else str(value)
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    vec = _as_vec3(value)
+    if vec is not None:
+        return vec
+    return json.dumps(_jsonable(value), sort_keys=True)
+
+
+def _as_vec3(value: Any) -> tuple | None:
+    """A 3-tuple of ints (vec3i) or floats (vec3d) when ``value`` is a sequence of 3 numbers."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if not isinstance(value, list | tuple) or len(value) != 3:
+        return None
+    if not all(isinstance(c, int | float | np.number) and not isinstance(c, bool) for c in value):
+        return None
+    if all(isinstance(c, int | np.integer) for c in value):
+        ints = tuple(int(c) for c in value)
+        return ints if all(-(2**31) <= c < 2**31 for c in ints) else None
+    return tuple(float(c) for c in value)
+
+
+def _jsonable(value: Any) -> Any:
+    """Recursively turn NumPy types, tuples, sets and paths into JSON-serialisable values."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | set | frozenset):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    return str(value)
+
+
+def set_grid_metadata(grid: Any, meta: Mapping[str, Any]) -> None:
+    """Set every ``meta`` item on ``grid`` (values converted by :func:`metadata_value`)."""
+    for key, value in meta.items():
+        grid[str(key)] = metadata_value(value)
+
+
+def file_metadata_dict(meta: Mapping[str, Any]) -> dict[str, Any]:
+    """File-level metadata converted item by item for ``pyopenvdb.write``."""
+    return {str(k): metadata_value(v) for k, v in meta.items()}
+
+
+def _half_names(grids: list, half_float: bool | Iterable[str]) -> set[str]:
+    if half_float is True:
+        return {g.name for g in grids}
+    if half_float is False:
+        return set()
+    return set(half_float)
+
+
+def _check_half_safe(grid: Any) -> None:
+    """Refuse half precision for integer labels that half floats cannot represent exactly."""
+    if grid.name != "component" or grid.activeVoxelCount() == 0:
+        return
+    _, vmax = grid.evalMinMax()
+    if float(vmax) > HALF_EXACT_INT:
+        raise ValueError(
+            f"grid 'component' has labels up to {int(vmax)}; half precision is exact only up to "
+            f"{HALF_EXACT_INT}: write it in full precision"
+        )
+
+
+def write_vdb(
+    path: str | os.PathLike,
+    grids: list,
+    file_metadata: Mapping[str, Any] | None = None,
+    half_float: bool | Iterable[str] = False,
+) -> Path:
+    """Write ``grids`` to ``path`` atomically (temp file in the same folder, then ``os.replace``).
+
+    ``half_float``: True stores every grid's floats as 16-bit halves, a set of names only those
+    grids. Each grid's ``saveFloatAsHalf`` flag is restored afterwards. Names must be unique.
+    """
+    path = Path(path)
+    names = [g.name for g in grids]
+    if len(set(names)) != len(names) or any(not n for n in names):
+        raise ValueError(f"grid names must be non-empty and unique, got {names}")
+    halves = _half_names(grids, half_float)
+    unknown = halves - set(names)
+    if unknown:
+        raise ValueError(f"half_float names grids that are not written: {sorted(unknown)}")
+    saved = [g.saveFloatAsHalf for g in grids]
+    try:
+        for g in grids:
+            if g.name in halves:
+                _check_half_safe(g)
+            g.saveFloatAsHalf = g.name in halves
+        with atomic_path(path) as tmp:
+            vdb.write(str(tmp), grids=list(grids), metadata=file_metadata_dict(file_metadata or {}))
+    finally:
+        for g, flag in zip(grids, saved, strict=True):
+            g.saveFloatAsHalf = flag
+    return path

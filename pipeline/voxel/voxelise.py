@@ -1,0 +1,705 @@
+"""Sparse voxelisation: affine-arithmetic cell enumeration aligned with OpenVDB's tree.
+
+components seed, section 3.2: a cell whose affine range excludes 0 cannot hold the surface.
+`enumerate_cells` subdivides the domain top-down in cells of 2^k voxels (aligned with VDB
+internal and leaf nodes) and bounds *all cells of a level in one vectorised call*:
+
+* cells whose bound is > 0 are inside: they become inactive tiles holding +background;
+* cells whose bound is < 0 are outside: dropped;
+* the rest are subdivided down to ``block`` voxels (<= the 8^3 leaf), and only those blocks are
+  evaluated voxel by voxel.
+
+Each cell is bounded over its box dilated by max(band, 1) voxels, so every voxel within band
+voxels of the zero set lies in an evaluated block (the narrow band is never cut by culling),
+and a culled cell has the sign of its proof on the face neighbours of its voxels too.
+Inside the evaluated blocks a voxel is active when its first-order distance estimate
+|f| / |grad f| is at most ``band`` voxels, or when the sign changes to a neighbour.
+
+**The band is closed by construction** (issue 12): after the blocks are assembled into leaves,
+:func:`close_band` activates every voxel whose sign (of the float32 value the grid stores)
+differs from a face neighbour's, across block and leaf borders. Since a culled voxel cannot
+differ in sign from its neighbours (its proof covers them), no inactive voxel is next to a
+sign change, so the sign of every inactive region is that of the band around it and
+OpenVDB's signedFloodFill (scan lines and tile neighbours) cannot leak.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
+
+import numpy as np
+from numba import njit, prange
+
+from pipeline.model.base import Node
+from pipeline.model.tape import (
+    Oracle,
+    Tape,
+    bound_cull_decide,
+    compile_model,
+    eval_blocks,
+    eval_mark_leaves,
+    mark_band,
+    specialise,
+)
+from pipeline.sparse.grid import LEAF, LEAF_LOG2, BlockGrid, pack_keys
+
+BOUND_CHUNK = 200_000  # boxes per affine call at most (memory ~ 100 bytes x ops x boxes)
+EVAL_CHUNK = 1 << 20  # points per evaluation call at most
+WORK_BYTES = 768 << 20  # working set of one bound / evaluation call, whatever the model's size
+USE_TAPE = True  # compiled, per-cell specialised tapes where the model lowers to one
+FINITE_LIMIT = 1e30  # |values| beyond are clamped before the float32 grid (its max is 3.4e38)
+
+
+class NonFiniteField(ValueError):
+    """The model evaluated to NaN or infinity at ``point``."""
+
+    def __init__(self, point: np.ndarray):
+        super().__init__(f"field is not finite at ({point[0]:g}, {point[1]:g}, {point[2]:g})")
+        self.point = point
+
+    def __reduce__(self):  # travels back from worker processes intact
+        return (NonFiniteField, (self.point,))
+
+
+@dataclass
+class CellLevels:
+    """Result of the enumeration, all in index space (voxel coordinates)."""
+
+    blocks: np.ndarray  # (N,3) origins of blocks to evaluate
+    block: int
+    inside: list[tuple[np.ndarray, int]] = field(default_factory=list)  # (origins, size) per level
+    outside: list[tuple[np.ndarray, int]] = field(default_factory=list)  # cells proven outside
+    stats: dict = field(default_factory=dict)
+
+
+def root_size_for(dims: np.ndarray, block: int) -> int:
+    """Size of the top-level cells: a power of two >= the domain (at most an upper internal node)."""
+    size = max(block, LEAF)
+    while size < dims.max() and size < 4096:
+        size *= 2
+    return size
+
+
+@dataclass
+class TapePool:
+    """Tapes back to back (pipeline.model.tape layout), one per cell of a level."""
+
+    start: np.ndarray
+    length: np.ndarray
+    res: np.ndarray
+    op: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    oracle: Oracle  # the mesh clauses' trees, shared by every tape of the pool
+
+    @classmethod
+    def single(cls, tape: Tape) -> TapePool:
+        one = np.zeros(1, np.int64)
+        return cls(one, np.array([len(tape)], np.int64), np.array([tape.res], np.int64), tape.op, tape.a,
+                   tape.b, tape.c, tape.oracle)
+
+    def arrays(self) -> tuple:
+        return self.start, self.length, self.res, self.op, self.a, self.b, self.c
+
+    def with_arrays(self, arrays: tuple) -> TapePool:
+        """A pool of new tapes (specialise's result) over the same oracle."""
+        return TapePool(*arrays, self.oracle)
+
+
+def enumerate_cells_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: float, band: float, block: int,
+                         progress: Callable[[str], None] | None = None, root_size: int | None = None,
+                         clip: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[CellLevels, TapePool]:
+    """:func:`enumerate_cells` on the compiled model with per-cell specialisation: every cell
+    is bounded with its parent's shortened tape and passes its own shortened tape to its children
+    (pipeline.model.tape). Same cells, same dilation; interval instead of affine bounds. Returns the
+    levels and the tapes of the blocks (tape i for block i)."""
+    dims = imax - imin + 1
+    size = root_size or root_size_for(dims, block)
+    lo_c, hi_c = (imin, imax) if clip is None else (np.maximum(imin, clip[0]), np.minimum(imax, clip[1]))
+    start = (lo_c // size) * size
+    counts = ((hi_c - start) // size) + 1
+    cells = start + np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3) * size
+    pool, tape_of = TapePool.single(tape), np.zeros(len(cells), np.int64)
+    pad = max(band, 1.0) * h
+    out = CellLevels(np.zeros((0, 3), np.int64), block)
+    st = {"cells_visited": 0, "cells_culled_inside": 0, "cells_culled_outside": 0, "levels": [],
+          "tape_clauses": int(len(tape))}
+    while len(cells):
+        lo, hi = _clip_boxes(cells, size, imin, imax)
+        # Culling: the box dilated by the band. The shortened tape of a cell is decided on a
+        # smaller box (much shorter tapes than the band-dilated one gives). A block's tape is only
+        # evaluated at its own voxel centres (all of them, those past the domain's edge too: the
+        # band's stencil reads them). Above, the cell's box grown by one voxel: the tape is then
+        # the model itself at every voxel of the cell and at their neighbours, so a child holding
+        # one side of a sign change between neighbouring voxels always has its zero inside its
+        # dilated box and is never culled (the band is closed by construction; a tape decided on
+        # the cell alone could hide it). Both in one pass (tape.bound_cull_decide).
+        grow = 0 if size <= block else 1
+        dlo, dhi = (cells - grow) * h, (cells + size - 1 + grow) * h
+        flo, fhi, (choff, choices) = _bound_level(pool, tape_of, lo * h - pad, hi * h + pad, dlo, dhi)
+        keep = _cull_level(out, st, cells, size, flo, fhi, progress)
+        pool = pool.with_arrays(specialise(keep.astype(np.int64), tape_of, *pool.arrays(), choff, choices))
+        st["levels"][-1]["mean_tape"] = round(float(pool.length.mean()), 2) if len(keep) else 0.0
+        amb = cells[keep]
+        if size <= block:
+            out.blocks = amb
+            break
+        size //= 2
+        cells, tape_of = _children(amb, size, lo_c, hi_c, parents=True)
+    out.stats = st
+    return out, pool
+
+
+def _bound_level(pool: TapePool, tape_of: np.ndarray, blo: np.ndarray, bhi: np.ndarray, dlo: np.ndarray,
+                 dhi: np.ndarray):
+    """Interval bounds of each box (blo..bhi) with its tape, and for the boxes not culled the
+    min/max decisions over their decision boxes dlo..dhi (offsets, choices)."""
+    lens = pool.length[tape_of]
+    choff = np.concatenate([[0], np.cumsum(lens)[:-1]]).astype(np.int64)
+    choices = np.zeros(int(lens.sum()), np.int32)  # int32: a mesh clause records its start node
+    if len(tape_of) == 0:
+        return np.zeros(0), np.zeros(0), (choff, choices)
+    f64 = partial(np.ascontiguousarray, dtype=np.float64)
+    flo, fhi = bound_cull_decide(f64(blo), f64(bhi), f64(dlo), f64(dhi), tape_of, *pool.arrays(),
+                                 *pool.oracle.arrays(), int(lens.max()), choff, choices)
+    return flo, fhi, (choff, choices)
+
+
+def _clip_boxes(origins: np.ndarray, size: int, imin: np.ndarray, imax: np.ndarray):
+    lo = np.maximum(origins, imin)
+    hi = np.minimum(origins + size - 1, imax)
+    return lo, hi
+
+
+def model_weight(model: Node) -> int:
+    """How many arrays one evaluation of the model keeps alive at once, at most: its nodes (an
+    n-ary node holds all its children's results) plus a formula's operations."""
+    n = 0
+    for node in model.walk():
+        formula = getattr(node.params, "formula", None)
+        n += 1 + (len(formula) // 2 if isinstance(formula, str) else 0)  # <= one operation per 2 characters
+    return n
+
+
+def chunk_for(model: Node, bytes_per_item: int, cap: int) -> int:
+    """Items (boxes, points) per call so that the call's working set stays within WORK_BYTES."""
+    return int(max(256, min(cap, WORK_BYTES // (bytes_per_item * model_weight(model)))))
+
+
+def bound_cells(model: Node, lo_idx: np.ndarray, hi_idx: np.ndarray, h: float, pad: float, t: float):
+    """Affine bounds of the model over index boxes (voxel centres lo..hi) dilated by ``pad``."""
+    flo = np.empty(len(lo_idx))
+    fhi = np.empty(len(lo_idx))
+    chunk = chunk_for(model, 2 * 48, BOUND_CHUNK)  # an affine form: 6 float64 per box, ~2 alive per node
+    for s in range(0, len(lo_idx), chunk):
+        e = s + chunk
+        a, b = model.bound(lo_idx[s:e] * h - pad, hi_idx[s:e] * h + pad, t)
+        flo[s:e], fhi[s:e] = a, b
+    return flo, fhi
+
+
+def enumerate_cells(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: float,
+                    block: int, t: float = 0.0, stop_size: int | None = None,
+                    progress: Callable[[str], None] | None = None, root_size: int | None = None,
+                    clip: tuple[np.ndarray, np.ndarray] | None = None) -> CellLevels:
+    """Top-down affine subdivision of the index box imin..imax (components seed, section 3.2).
+
+    Returns the blocks (size ``block``) that may hold voxels within the band, and the cells
+    proven inside at every level. ``stop_size`` ends the descent early (for estimates).
+    ``clip`` restricts the work to a brick of the domain while keeping the cells (and hence
+    the bounds) of the whole-domain run: a bricked run finds exactly the same blocks.
+    """
+    dims = imax - imin + 1
+    size = root_size or root_size_for(dims, block)
+    lo_c, hi_c = (imin, imax) if clip is None else (np.maximum(imin, clip[0]), np.minimum(imax, clip[1]))
+    start = (lo_c // size) * size
+    counts = ((hi_c - start) // size) + 1
+    grid = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
+    cells = start + grid * size
+    pad = max(band, 1.0) * h  # >= one voxel: a culled cell's sign holds on its voxels' neighbours
+    out = CellLevels(np.zeros((0, 3), np.int64), block)
+    st = {"cells_visited": 0, "cells_culled_inside": 0, "cells_culled_outside": 0, "levels": []}
+    stop = block if stop_size is None else max(block, stop_size)
+    while len(cells):
+        lo, hi = _clip_boxes(cells, size, imin, imax)
+        flo, fhi = bound_cells(model, lo, hi, h, pad, t)
+        amb = cells[_cull_level(out, st, cells, size, flo, fhi, progress)]
+        if size <= stop:
+            out.blocks = amb
+            break
+        size //= 2
+        cells = _children(amb, size, lo_c, hi_c)
+    out.stats = st
+    return out
+
+
+def _cull_level(out: CellLevels, st: dict, cells: np.ndarray, size: int, flo: np.ndarray, fhi: np.ndarray,
+                progress: Callable[[str], None] | None) -> np.ndarray:
+    """One level of the descent (both evaluators): cells whose bound is > 0 are recorded inside,
+    < 0 outside, the statistics counted; returns the indices of the ambiguous cells."""
+    inside, outside = flo > 0, fhi < 0
+    keep = np.flatnonzero(~(inside | outside))
+    st["cells_visited"] += len(cells)
+    st["cells_culled_inside"] += int(inside.sum())
+    st["cells_culled_outside"] += int(outside.sum())
+    st["levels"].append({"size": size, "cells": len(cells), "ambiguous": int(len(keep))})
+    if progress:
+        progress(f"level {size}: {len(cells)} cells")
+    if inside.any():
+        out.inside.append((cells[inside], size))
+    if outside.any():
+        out.outside.append((cells[outside], size))
+    return keep
+
+
+def _children(cells: np.ndarray, size: int, imin: np.ndarray, imax: np.ndarray, parents: bool = False):
+    """The 8 children of every cell, without those entirely outside the index box (and, with
+    ``parents``, the index of each child's parent)."""
+    offs = np.stack(np.meshgrid([0, size], [0, size], [0, size], indexing="ij"), -1).reshape(-1, 3)
+    kids = (cells[:, None, :] + offs[None, :, :]).reshape(-1, 3)
+    keep = np.all(kids <= imax, axis=1) & np.all(kids + size - 1 >= imin, axis=1)
+    if parents:
+        return kids[keep], np.repeat(np.arange(len(cells)), 8)[keep]
+    return kids[keep]
+
+
+def evaluate_blocks(model: Node, origins: np.ndarray, block: int, h: float, t: float) -> np.ndarray:
+    """Field values at the voxel centres of every block: (N, b, b, b) float64."""
+    b = block
+    r = np.arange(b)
+    out = np.empty((len(origins), b, b, b))
+    per = max(1, chunk_for(model, 3 * 8, EVAL_CHUNK) // (b * b * b))
+    for s in range(0, len(origins), per):
+        o = origins[s:s + per]
+        x = ((o[:, 0, None, None, None] + r[None, :, None, None]) * h)
+        y = ((o[:, 1, None, None, None] + r[None, None, :, None]) * h)
+        z = ((o[:, 2, None, None, None] + r[None, None, None, :]) * h)
+        x, y, z = np.broadcast_arrays(x, y, z)
+        out[s:s + per] = model.evaluate_xyz(x, y, z, t)
+    return out
+
+
+def band_mask(values: np.ndarray, h: float, band: float) -> np.ndarray:
+    """Active voxels of evaluated blocks: |f|/|grad f| <= band*h, or a sign change to a neighbour.
+
+    The gradient is by central differences inside a block and one-sided at its faces (first
+    order is enough to decide band membership); Numba, one pass over the blocks.
+    """
+    v = np.ascontiguousarray(values, dtype=np.float64)
+    return mark_band(v, np.ones(v.shape, np.bool_), float(h), float(band))[0]
+
+
+@dataclass
+class Voxelised:
+    blocks: BlockGrid  # leaf blocks: evaluated values (+-background where not evaluated), band mask
+    inside_boxes: np.ndarray  # (K,2,3) index boxes proven inside (inclusive corners)
+    stats: dict
+    outside_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3), np.int64))  # not in a leaf
+
+
+@dataclass
+class BlockSamples:
+    """Evaluated blocks of one domain or brick, before assembly into leaves (picklable)."""
+
+    blocks: np.ndarray  # (N,3) block origins
+    values: np.ndarray  # (N,b,b,b) float64 field values
+    active: np.ndarray  # (N,b,b,b) band mask
+    valid: np.ndarray  # (N,b,b,b) inside the domain
+    inside: list  # [(origins, size)] cells proven inside, per level
+    stats: dict
+    outside: list = field(default_factory=list)  # [(origins, size)] cells proven outside
+
+
+def sample_blocks(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: float = 3.0,
+                  block: int = 4, t: float = 0.0, progress: Callable[[str], None] | None = None,
+                  root_size: int | None = None, clip: tuple[np.ndarray, np.ndarray] | None = None) -> BlockSamples:
+    """Enumerate, evaluate and band-mark the blocks of the domain (or of one brick of it).
+
+    A model that lowers to a tape (pipeline.model.tape) is enumerated and evaluated with per-cell
+    specialised tapes; one with an untraceable node (mesh, grid, hfrep, component oracles)
+    with the node-by-node affine bounds and NumPy evaluation."""
+    t0 = time.perf_counter()
+    tape = compile_model(model, t) if USE_TAPE else None
+    if tape is not None:
+        levels, pool = enumerate_cells_tape(tape, imin, imax, h, band, block, progress, root_size, clip)
+        blocks = levels.blocks
+        t1 = time.perf_counter()
+        vals = eval_blocks(blocks, block, float(h), np.arange(len(blocks), dtype=np.int64), *pool.arrays(),
+                           *pool.oracle.arrays(), int(pool.length.max()) if len(blocks) else 1)
+    else:
+        levels = enumerate_cells(model, imin, imax, h, band, block, t, progress=progress, root_size=root_size,
+                                 clip=clip)
+        blocks = levels.blocks
+        t1 = time.perf_counter()
+        vals = evaluate_blocks(model, blocks, block, h, t)
+    t2 = time.perf_counter()
+    levels.stats["evaluator"] = "tape" if tape is not None else "nodes"
+    levels.stats["enumerate_seconds"] = round(t1 - t0, 4)  # tracing, culling and specialisation
+    levels.stats["evaluate_seconds"] = round(t2 - t1, 4)  # values of the blocks' voxels
+    valid = _in_domain(blocks, block, imin, imax)
+    active, bad = mark_band(vals, valid, float(h), float(band))
+    if bad >= 0:
+        n, i, j, k = np.unravel_index(bad, vals.shape)
+        raise NonFiniteField((blocks[n] + (i, j, k)) * h)
+    if progress:
+        progress(f"evaluated {len(blocks)} blocks")
+    return BlockSamples(blocks, vals, active, valid, levels.inside, levels.stats, levels.outside)
+
+
+def merge_samples(parts: list[BlockSamples]) -> BlockSamples:
+    """Concatenate the samples of bricks (disjoint by construction) into one."""
+    if len(parts) == 1:
+        return parts[0]
+    cat = [np.concatenate([getattr(p, k) for p in parts]) for k in ("blocks", "values", "active", "valid")]
+    keys = ("cells_visited", "cells_culled_inside", "cells_culled_outside", "enumerate_seconds", "evaluate_seconds")
+    stats = {k: sum(p.stats[k] for p in parts) for k in keys}
+    stats["bricks"] = len(parts)
+    return BlockSamples(*cat, [lv for p in parts for lv in p.inside], stats, [lv for p in parts for lv in p.outside])
+
+
+def assemble(s: BlockSamples, imin: np.ndarray, imax: np.ndarray, h: float, band: float) -> Voxelised:
+    """Leaves, inside boxes and statistics from the evaluated blocks; the band is closed
+    (:func:`close_band`) and every value is finite (clamped to +-FINITE_LIMIT, counted)."""
+    block = s.values.shape[1] if len(s.values) else 4
+    vals = s.values
+    clamped = _count_beyond(vals, s.valid, FINITE_LIMIT)
+    if clamped:
+        vals = np.clip(vals, -FINITE_LIMIT, FINITE_LIMIT)
+    grid, known = _assemble_leaves(s.blocks, block, vals, s.active, s.valid, s.inside, h, 1.0)
+    stats = dict(s.stats)
+    stats.update({"block": int(block), "blocks_evaluated": int(len(s.blocks)), "voxels_evaluated": int(s.valid.sum())})
+    return _finish(grid, known, s.inside, s.outside, stats, clamped, imin, imax, h, band)
+
+
+def _finish(grid: BlockGrid, known: np.ndarray, inside: list, outside: list, stats: dict, clamped: int,
+            imin: np.ndarray, imax: np.ndarray, h: float, band: float) -> Voxelised:
+    """The leaves' band closed, background and proxies set, the proven boxes and the statistics."""
+    added = close_band(grid, known)
+    # from the float32 values the grid stores, so bricked (float32 transfer) and unsplit runs agree
+    bg = _background(grid.values, grid.active, band, h)
+    _set_proxies(grid.values, known, np.float32(bg))
+    grid.background = -bg
+    inside_boxes = _inside_boxes(inside, imin, imax)
+    outside_boxes = _outside_leaves(grid, _inside_boxes(outside, imin, imax))
+    stats.update({
+        "active_voxels": int(grid.active.sum()),
+        "activated_by_closure": int(added),
+        "values_clamped": int(clamped),
+        "leaves": int(len(grid.origins)),
+        "inside_tiles": int(len(inside_boxes)),
+        "background": float(bg),
+    })
+    return Voxelised(grid, inside_boxes, stats, outside_boxes)
+
+
+def voxelise_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: float, band: float = 3.0, block: int = 4,
+                  progress: Callable[[str], None] | None = None, t0: float | None = None) -> Voxelised:
+    """:func:`assemble` of :func:`sample_blocks` for a model that lowers to a tape, without the
+    blocks' arrays: the blocks are evaluated, band-marked and written into their leaves by one
+    compiled pass over the leaves (tape.eval_mark_leaves; at 1024^3 the demo's blocks held 0.4 GB
+    of float64 values and 0.1 GB of band and domain masks, then scattered). The same grid, boxes
+    and statistics; ``evaluate_seconds`` then includes the band marking and the scatter."""
+    t0 = time.perf_counter() if t0 is None else t0
+    imin, imax = np.asarray(imin, np.int64), np.asarray(imax, np.int64)
+    levels, pool = enumerate_cells_tape(tape, imin, imax, h, band, block, progress)
+    blocks = levels.blocks
+    t1 = time.perf_counter()
+    if len(blocks) == 0:
+        grid, known = BlockGrid(h, -1.0), np.zeros((0, LEAF, LEAF, LEAF), bool)
+        bad, clamped, nvalid = -1, 0, 0
+    else:
+        leaf_of = (blocks >> LEAF_LOG2) << LEAF_LOG2
+        keys = pack_keys(leaf_of)
+        order = np.argsort(keys, kind="stable")
+        sk = keys[order]
+        first = np.flatnonzero(np.concatenate([[True], sk[1:] != sk[:-1]]))
+        L = len(first)
+        values = np.empty((L, LEAF, LEAF, LEAF), np.float32)  # first touched by the pass, leaf by leaf
+        act = np.empty((L, LEAF, LEAF, LEAF), bool)
+        known = np.empty((L, LEAF, LEAF, LEAF), bool)
+        lstart = np.append(first, len(blocks)).astype(np.int64)
+        bad, clamped, nvalid = eval_mark_leaves(
+            blocks, block, float(h), np.arange(len(blocks), dtype=np.int64), *pool.arrays(), *pool.oracle.arrays(),
+            int(pool.length.max()), lstart, order.astype(np.int64), imin, imax, float(band), FINITE_LIMIT,
+            np.float32(-1.0), values, act, known)
+        if bad < 0:
+            _fill_inside_cells(values, sk[first], levels.inside, 1.0)
+            grid = BlockGrid(h, -1.0, leaf_of[order[first]], values, act)  # sorted keys: rows stay valid
+    t2 = time.perf_counter()
+    levels.stats["evaluator"] = "tape"
+    levels.stats["enumerate_seconds"] = round(t1 - t0, 4)
+    levels.stats["evaluate_seconds"] = round(t2 - t1, 4)
+    if bad >= 0:
+        n, i, j, k = np.unravel_index(bad, (len(blocks), block, block, block))
+        raise NonFiniteField((blocks[n] + (i, j, k)) * h)
+    if progress:
+        progress(f"evaluated {len(blocks)} blocks")
+    stats = dict(levels.stats)
+    stats.update({"block": int(block), "blocks_evaluated": int(len(blocks)), "voxels_evaluated": int(nvalid)})
+    return _finish(grid, known, levels.inside, levels.outside, stats, clamped, imin, imax, h, band)
+
+
+def _outside_leaves(grid: BlockGrid, boxes: np.ndarray) -> np.ndarray:
+    """Boxes proven outside that lie in no leaf of the grid (a leaf carries its own signs)."""
+    if len(boxes) == 0 or len(grid.origins) == 0:
+        return boxes
+    leaf = (boxes[:, 0] >> LEAF_LOG2) << LEAF_LOG2
+    sub = np.all((boxes[:, 1] >> LEAF_LOG2) << LEAF_LOG2 == leaf, axis=1)
+    in_leaf = sub & (grid.block_index(leaf) >= 0)
+    return boxes[~in_leaf]
+
+
+def close_band(grid: BlockGrid, known: np.ndarray) -> int:
+    """Activate every evaluated voxel whose sign (f > 0, of the stored float32 value) differs from
+    that of an evaluated face neighbour, within and across leaves. Returns how many were added."""
+    if len(grid.origins) == 0:
+        return 0
+    step = np.eye(3, dtype=np.int64) * LEAF
+    nbr = np.stack([grid.block_index(grid.origins + d * step[a]) for d in (1, -1) for a in range(3)], axis=1)
+    return int(_close_band(grid.values, grid.active, known, nbr.astype(np.int64)))
+
+
+@njit(cache=True, parallel=True)
+def _close_band(values, active, known, nbr) -> int:
+    """One parallel pass over the leaves (``nbr``: the rows of the +x, +y, +z, -x, -y, -z
+    neighbour leaves, -1 where none): a known voxel with a known face neighbour of the other sign
+    becomes active. A leaf writes only its own flags and reads only values and known flags, so the
+    leaves are independent; the relation is symmetric, so both voxels of a pair are activated."""
+    added = np.zeros(values.shape[0], np.int64)
+    for r in prange(values.shape[0]):
+        row = nbr[r, 0] * 0 + r  # int64, as the neighbour rows (a prange index may be unsigned)
+        n = 0
+        for i in range(LEAF):
+            for j in range(LEAF):
+                for k in range(LEAF):
+                    if not known[r, i, j, k] or active[r, i, j, k]:
+                        continue
+                    inside = values[r, i, j, k] > 0
+                    for s in range(6):
+                        d = 1 if s < 3 else -1
+                        axis = s % 3
+                        rr, ii, jj, kk = row, i + d * (axis == 0), j + d * (axis == 1), k + d * (axis == 2)
+                        if ii < 0 or jj < 0 or kk < 0 or ii == LEAF or jj == LEAF or kk == LEAF:
+                            rr = nbr[r, s]
+                            if rr < 0:
+                                continue
+                            ii, jj, kk = ii & (LEAF - 1), jj & (LEAF - 1), kk & (LEAF - 1)
+                        if known[rr, ii, jj, kk] and (values[rr, ii, jj, kk] > 0) != inside:
+                            active[r, i, j, k] = True
+                            n += 1
+                            break
+        added[r] = n
+    return added.sum()
+
+
+@njit(cache=True)
+def _set_proxies(values, known, bg):
+    """Voxels of the leaves that were not evaluated hold +-bg with the sign of their cell's proof."""
+    flat_v = values.reshape(-1)
+    flat_k = known.reshape(-1)
+    for n in range(flat_v.size):
+        if not flat_k[n]:
+            flat_v[n] = bg if flat_v[n] > 0 else -bg
+
+
+def voxelise(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: float = 3.0,
+             block: int = 4, t: float = 0.0, progress: Callable[[str], None] | None = None) -> Voxelised:
+    """Voxelise ``model`` over the index box imin..imax: sparse narrow band plus inside tiles."""
+    t0 = time.perf_counter()
+    tape = compile_model(model, t) if USE_TAPE else None
+    if tape is not None:
+        return voxelise_tape(tape, imin, imax, h, band, block, progress, t0)
+    return assemble(sample_blocks(model, imin, imax, h, band, block, t, progress), imin, imax, h, band)
+
+
+def bricks_for(imin: np.ndarray, imax: np.ndarray, brick: int, block: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Index boxes of the bricks (aligned to ``brick``, a multiple of the leaf) covering the domain."""
+    start = (imin // brick) * brick
+    counts = ((imax - start) // brick) + 1
+    out = []
+    for ijk in np.ndindex(*[int(c) for c in counts]):
+        lo = start + np.array(ijk) * brick
+        out.append((np.maximum(lo, imin), np.minimum(lo + brick - 1, imax)))
+    return out
+
+
+def _in_domain(blocks: np.ndarray, b: int, imin: np.ndarray, imax: np.ndarray) -> np.ndarray:
+    """Voxels of each block inside the domain's index box (only boundary blocks are partial)."""
+    valid = np.ones((len(blocks), b, b, b), bool)
+    edge = np.flatnonzero(np.any(blocks < imin, axis=1) | np.any(blocks + b - 1 > imax, axis=1))
+    r = np.arange(b)
+    for n in edge:
+        ok = [(blocks[n, a] + r >= imin[a]) & (blocks[n, a] + r <= imax[a]) for a in range(3)]
+        valid[n] = ok[0][:, None, None] & ok[1][None, :, None] & ok[2][None, None, :]
+    return valid
+
+
+def _background(values: np.ndarray, active: np.ndarray, band: float, h: float) -> float:
+    """|background|: above every active value, so inactive +-bg never collide with band values."""
+    top = _max_abs_active(values, active) if len(values) else -1.0
+    if top < 0:
+        return float(band * h)
+    return float(max(top * 1.01, 1e-6))
+
+
+@njit(cache=True, parallel=True)
+def _max_abs_active(values, active) -> float:
+    """max |v| over the active voxels of the leaves, -1 when none is active."""
+    top = np.full(values.shape[0], -1.0)
+    for r in prange(values.shape[0]):
+        fv, fa = values[r].reshape(-1), active[r].reshape(-1)
+        t = -1.0
+        for n in range(fv.size):
+            if fa[n]:
+                t = max(t, abs(np.float64(fv[n])))
+        top[r] = t
+    return top.max()
+
+
+def _assemble_leaves(blocks, b, vals, active, valid, inside_levels, h, bg) -> tuple[BlockGrid, np.ndarray]:
+    """Scatter evaluated blocks into 8^3 leaves; unevaluated voxels hold -bg, or +bg when a
+    sub-leaf cell proved them inside. Also returns the mask of evaluated (known) voxels."""
+    if len(blocks) == 0:
+        return BlockGrid(h, -bg), np.zeros((0, LEAF, LEAF, LEAF), bool)
+    leaf_of = (blocks >> LEAF_LOG2) << LEAF_LOG2
+    keys, first, rows = np.unique(pack_keys(leaf_of), return_index=True, return_inverse=True)
+    L = len(keys)
+    values = np.full((L, LEAF, LEAF, LEAF), -bg, np.float32)
+    act = np.zeros((L, LEAF, LEAF, LEAF), bool)
+    known = np.zeros((L, LEAF, LEAF, LEAF), bool)
+    _scatter(values, act, known, rows.reshape(-1), blocks - leaf_of, vals, active, valid, np.float32(-bg))
+    _fill_inside_cells(values, keys, inside_levels, bg)
+    grid = BlockGrid(h, -bg, leaf_of[first], values, act)  # keys are sorted: rows stay valid
+    return grid, known
+
+
+def _fill_inside_cells(values: np.ndarray, keys: np.ndarray, inside_levels: list, bg: float) -> None:
+    """+bg on the voxels of the sub-leaf cells proven inside, in the leaves (sorted ``keys``)."""
+    L = len(keys)
+    for origins, size in inside_levels:
+        if size >= LEAF or len(origins) == 0:
+            continue
+        lkeys = pack_keys((origins >> LEAF_LOG2) << LEAF_LOG2)
+        pos = np.minimum(np.searchsorted(keys, lkeys), L - 1)
+        ok = keys[pos] == lkeys
+        _fill_cells(values, pos[ok], origins[ok] - ((origins[ok] >> LEAF_LOG2) << LEAF_LOG2), size, bg)
+
+
+@njit(cache=True, parallel=True)
+def _count_beyond(vals, valid, limit) -> int:
+    """How many valid values have |v| > limit (one parallel pass)."""
+    flat_v, flat_ok = vals.reshape(-1), valid.reshape(-1)
+    total = 0
+    for n in prange(flat_v.size):
+        if flat_ok[n] and abs(flat_v[n]) > limit:
+            total += 1
+    return total
+
+
+@njit(cache=True, parallel=True)
+def _scatter(values, act, known, rows, offs, vals, active, valid, outside):
+    """Blocks into their leaves (blocks are disjoint: the parallel writes never meet); voxels
+    outside the domain hold ``outside``."""
+    b = vals.shape[1]
+    for n in prange(len(rows)):
+        r, oi, oj, ok = rows[n], offs[n, 0], offs[n, 1], offs[n, 2]
+        for i in range(b):
+            for j in range(b):
+                for k in range(b):
+                    values[r, oi + i, oj + j, ok + k] = vals[n, i, j, k] if valid[n, i, j, k] else outside
+                    act[r, oi + i, oj + j, ok + k] = active[n, i, j, k]
+                    known[r, oi + i, oj + j, ok + k] = valid[n, i, j, k]
+
+
+@njit(cache=True)
+def _fill_cells(values, rows, offs, size, bg):
+    for n in range(len(rows)):
+        r, oi, oj, ok = rows[n], offs[n, 0], offs[n, 1], offs[n, 2]
+        values[r, oi:oi + size, oj:oj + size, ok:ok + size] = bg
+
+
+def _inside_boxes(inside_levels, imin, imax) -> np.ndarray:
+    boxes = []
+    for origins, size in inside_levels:
+        lo, hi = _clip_boxes(origins, size, imin, imax)
+        boxes.append(np.stack([lo, hi], axis=1))
+    if not boxes:
+        return np.zeros((0, 2, 3), np.int64)
+    return unique_boxes(np.concatenate(boxes))
+
+
+def unique_boxes(boxes: np.ndarray) -> np.ndarray:
+    """``np.unique(boxes.reshape(-1, 6), axis=0)`` as (K, 2, 3): the boxes sorted by (lo, hi),
+    each once. The cells of one run are disjoint, so their low corners are distinct and one
+    sort of their packed keys gives that order (np.unique's row sort took 0.35 s for the 0.3M
+    boxes of the demo at 1024^3); the bricks of one domain share their coarse cells, and boxes
+    with equal low corners go to np.unique."""
+    rows = np.asarray(boxes, np.int64).reshape(-1, 6)
+    keys = pack_keys(rows[:, :3])
+    order = np.argsort(keys, kind="stable")
+    k = keys[order]
+    if len(k) > 1 and not np.all(k[1:] > k[:-1]):
+        return np.unique(rows, axis=0).reshape(-1, 2, 3)
+    return rows[order].reshape(-1, 2, 3)
+
+
+def estimate_band_bytes(model: Node, domain, band: float, t: float = 0.0) -> float:
+    """Rough memory need of a voxelisation, from a coarse enumeration, plus the bounded working
+    set of the evaluation calls (WORK_BYTES).
+
+    The enumeration goes down until a level has ESTIMATE_CELLS ambiguous cells (or 1/64 of the
+    domain); the growth of the ambiguous count between its last two levels says how the surface
+    fills space: x4 per halving for a resolved surface, x8 for one that fills the volume (a
+    gyroid finer than the cells). That ratio, clamped to [4, 8], extrapolates the count down to
+    leaves; a leaf costs ~14 KiB at the peak of voxelise plus export (measured: a gyroid of
+    36k leaves at 256^3 peaks at 0.80 GB, of 132k leaves at 400^3 at 1.92 GB: 11.7 KiB per leaf).
+    """
+    lv = _coarse_cells(model, domain, band, t)
+    levels = lv.stats["levels"]
+    s = levels[-1]["size"]
+    amb = float(len(lv.blocks))
+    if len(levels) >= 2 and levels[-2]["ambiguous"] > 0:
+        ratio = float(np.clip(levels[-1]["ambiguous"] / levels[-2]["ambiguous"], 4.0, 8.0))
+    else:
+        ratio = 4.0
+    leaves = amb * ratio ** max(0.0, np.log2(s / 8.0))
+    leaves = min(leaves, float(np.prod(np.ceil(domain.dims / 8.0))))  # never more than the domain's leaves
+    return leaves * LEAF_PEAK_BYTES + WORK_BYTES
+
+
+def estimate_interior_voxels(model: Node, domain, band: float, t: float = 0.0) -> float:
+    """Rough count of the voxels inside the object (what an interior distance solve touches):
+    cells proven inside by the coarse enumeration, plus half of the undecided ones."""
+    lv = _coarse_cells(model, domain, band, t)
+    imin, imax = domain.index_min, domain.index_max
+    total = 0.0
+    for origins, size in lv.inside:
+        lo, hi = _clip_boxes(origins, size, imin, imax)
+        total += float(np.prod(hi - lo + 1, axis=1).sum())
+    s = lv.stats["levels"][-1]["size"]
+    return total + 0.5 * len(lv.blocks) * float(s) ** 3
+
+
+LEAF_PEAK_BYTES = 14 << 10  # peak memory per band leaf through voxelise and export (measured ~11.7 KiB)
+ESTIMATE_CELLS = 50_000  # ambiguous cells at which the estimating enumeration stops
+
+
+def _coarse_cells(model: Node, domain, band: float, t: float) -> CellLevels:
+    """The enumeration down to 1/64 of the domain, or less deep once a level has ESTIMATE_CELLS
+    ambiguous cells (the cost of an estimate stays bounded whatever the model)."""
+    imin, imax = domain.index_min, domain.index_max
+    stop = 1 << int(np.ceil(np.log2(max(8, domain.dims.max() / 64))))
+    # at most ~16^3 top cells, whatever the resolution (the voxeliser's own top cells stop at
+    # 4096 voxels: 10^6 voxels a side would be 10^7 of them)
+    root = max(root_size_for(domain.dims, 8), 1 << int(np.ceil(np.log2(max(8, domain.dims.max() / 16)))))
+    size = root
+    lv = enumerate_cells(model, imin, imax, domain.voxel_size, band, 8, t, stop_size=max(stop, size // 2),
+                         root_size=root)
+    while lv.stats["levels"][-1]["size"] > stop and len(lv.blocks) < ESTIMATE_CELLS:
+        size = lv.stats["levels"][-1]["size"] // 2
+        lv = enumerate_cells(model, imin, imax, domain.voxel_size, band, 8, t, stop_size=size, root_size=root)
+    return lv

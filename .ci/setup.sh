@@ -13,6 +13,9 @@ fi
 need_apt=()
 "$SYS_PY" -c "import pyopenvdb" 2>/dev/null || "$SYS_PY" -c "import openvdb" 2>/dev/null || need_apt+=(python3-openvdb)
 "$SYS_PY" -c "import ensurepip, venv" 2>/dev/null || need_apt+=(python3-venv)
+# GNU OpenMP: Numba's threading layer of choice (pipeline/__init__.py; TBB's slows down with use)
+libs=$(/sbin/ldconfig -p 2>/dev/null || ldconfig -p 2>/dev/null || true)
+[[ "$libs" == *"libgomp.so.1 "* ]] || need_apt+=(libgomp1)
 if [ ${#need_apt[@]} -gt 0 ]; then
   if ! command -v apt-get >/dev/null 2>&1; then
     cat >&2 <<MSG

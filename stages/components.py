@@ -25,7 +25,7 @@ from pipeline.sparse.grid import BlockGrid, frep_to_vdb, linear_transform, vdb
 from pipeline.topology import component_bricks as cb
 from pipeline.topology import components as cc
 from pipeline.util.atomic import atomic_path
-from stages.base import StageParams
+from stages.base import FrepBand, StageParams, band_only
 
 REQUIRES = ("voxelise",)
 
@@ -67,11 +67,9 @@ def octree_frame(domain, tolerance: float | None, depth: int | None) -> tuple[np
 
 def run(ctx, p: Params) -> dict:
     job = ctx.job
-    if ctx.job.memory_estimate:  # the per-stage peak estimate checked before the run (config._check_memory)
-        ctx.manifest.setdefault("memory_estimate_bytes", dict(ctx.job.memory_estimate))
     origin, size, depth, region = octree_frame(job.domain, p.tolerance, p.depth)
     found = _detect(ctx, origin, size, depth, region)
-    blocks: BlockGrid = ctx.blocks["frep"]
+    blocks = ctx.get(FrepBand).blocks
     fine_is_voxel = np.isclose(size / 2**depth, job.domain.voxel_size, rtol=1e-9)
     labels = _voxel_labels(found, blocks, job.domain.index_min if fine_is_voxel else None)
     kept = _kept(found, p.keep)
@@ -85,7 +83,8 @@ def run(ctx, p: Params) -> dict:
     # the grid), and at 1024^3 they would hold ~0.5 GB through hfrep and export
     # the integer labels themselves: the batched writer converts them a batch at a time (a float32
     # copy of them all was 0.3 GB of fresh memory and 0.6 s at 1024^3)
-    lab = BlockGrid(blocks.voxel_size, 0.0, ctx.blocks["frep"].origins, labels, ctx.blocks["frep"].active)
+    blocks = ctx.get(FrepBand).blocks  # the kept pieces' when keep: removed some
+    lab = BlockGrid(blocks.voxel_size, 0.0, blocks.origins, labels, blocks.active)
     ctx.grids["component"] = _label_grid(ctx, p, lab, found)
     del lab
     if p.separate:
@@ -94,6 +93,13 @@ def run(ctx, p: Params) -> dict:
     st = dict(found.tree.stats)
     st.update({"count": found.count, "cells": len(found.tree), "labelling_seconds": round(found.seconds, 4)})
     return st
+
+
+def grids(p: Params) -> list[str]:
+    return ["component"]  # and with keep: a new frep; with separate: one .vdb per piece
+
+
+estimate_bytes = band_only
 
 
 def _detect(ctx, origin, size: float, depth: int, region) -> cc.Components:
@@ -133,14 +139,15 @@ def _kept(found: cc.Components, keep) -> list[int]:
 def _keep_pieces(ctx, found: cc.Components, labels: np.ndarray, kept: list[int]) -> np.ndarray:
     """Replace ``frep`` by the kept pieces: voxels of removed pieces become outside (-bg,
     inactive), and only inside boxes of kept clusters stay filled."""
-    old: BlockGrid = ctx.blocks["frep"]
+    prev = ctx.get(FrepBand)
+    old = prev.blocks
     keep_mask = np.isin(labels, kept)
     active = old.active & keep_mask
     removed = old.active & ~keep_mask
     values = np.where(removed, np.float32(old.background), old.values)
     rows = np.nonzero(active.any(axis=(1, 2, 3)))[0]
     new = BlockGrid(old.voxel_size, old.background, old.origins[rows], values[rows], active[rows])
-    boxes = np.asarray(ctx.data.get("inside_boxes", np.zeros((0, 2, 3))), np.int64).reshape(-1, 2, 3)
+    boxes = np.asarray(prev.inside_boxes, np.int64).reshape(-1, 2, 3)
     if len(boxes):
         centre = 0.5 * (boxes[:, 0] + boxes[:, 1]) * old.voxel_size
         boxes = boxes[np.isin(cc.point_labels(found, centre), kept)]
@@ -148,9 +155,8 @@ def _keep_pieces(ctx, found: cc.Components, labels: np.ndarray, kept: list[int])
     grid = frep_to_vdb(new, boxes, "frep")
     grid.updateMetadata({k: v for k, v in meta.items() if k.startswith("frepvdb") or k == "band_voxels"})
     ctx.grids["frep"] = grid
-    ctx.blocks["frep"] = new
-    ctx.data["frep_signed"] = False  # inactive voxels of a removed piece may still hold + values
-    ctx.data["inside_boxes"] = boxes
+    # inactive voxels of a removed piece may still hold + values: not signed
+    ctx.put(FrepBand(new, boxes, prev.band, signed=False))
     return np.where(keep_mask, labels, 0)[rows]
 
 
@@ -169,8 +175,9 @@ def _separate(ctx, p: Params, found: cc.Components, labels: np.ndarray, kept: li
     """One .vdb per component: the field f AND g_k (section 4.3) on the voxels labelled k
     (``voxel_depth``: the octree level whose cell is one voxel, None when there is none)."""
     sep, mapping = cc.coarsest_same_count(found) if p.adaptive else (found, {k: k for k in kept})
-    blocks: BlockGrid = ctx.blocks["frep"]
-    boxes = np.asarray(ctx.data.get("inside_boxes", np.zeros((0, 2, 3))), np.int64).reshape(-1, 2, 3)
+    frep = ctx.get(FrepBand)
+    blocks = frep.blocks
+    boxes = np.asarray(frep.inside_boxes, np.int64).reshape(-1, 2, 3)
     box_labels = cc.point_labels(found, 0.5 * (boxes[:, 0] + boxes[:, 1]) * blocks.voxel_size) if len(boxes) \
         else np.zeros(0, np.int64)
     files = []

@@ -14,7 +14,7 @@ from pydantic import Field
 from pipeline.io.meshout import export_meshes
 from pipeline.io.report import write_report
 from pipeline.io.vdbio import write_vdb
-from stages.base import StageParams
+from stages.base import StageParams, band_only
 
 REQUIRES = ("voxelise",)
 VTKKind = Literal["vti", "vtp", "vtu", "ply", "obj"]
@@ -34,10 +34,14 @@ class Params(StageParams):
     mesh_per_component: bool = Field(default=False, description="also one mesh per component (components stage)")
 
 
-def run(ctx, p: Params) -> dict:
+def grids(p: Params) -> list[str]:
+    return []
 
-    if ctx.job.memory_estimate:  # the per-stage peak estimate checked before the run (config._check_memory)
-        ctx.manifest.setdefault("memory_estimate_bytes", dict(ctx.job.memory_estimate))
+
+estimate_bytes = band_only
+
+
+def run(ctx, p: Params) -> dict:
     names = [n for n in ctx.grids if p.grids is None or n in p.grids]
     grids = {n: ctx.grids[n] for n in names}
     stats: dict = {"grids": names}
@@ -58,7 +62,6 @@ def run(ctx, p: Params) -> dict:
                                                                          if k not in ("path", "kind")})
         stats["vtk"] = [e["path"] for e in entries]
     if p.mesh:
-
         stats["mesh"] = export_meshes(ctx, ctx.grids, p.mesh, p.mesh_per_component)
     if p.previews:
         from pipeline.io.previews import write_previews  # matplotlib: only when previews are asked for
@@ -72,5 +75,4 @@ def run(ctx, p: Params) -> dict:
 
 
 def _write_report(ctx, manifest: dict) -> None:
-
     write_report(ctx.out_dir / "report.html", manifest)

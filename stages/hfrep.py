@@ -20,7 +20,8 @@ from pipeline.distance.hfim import fill_deep, fill_tiles, hierarchical_distance,
 from pipeline.distance.hfrep import density_grid, hfrep_blocks, hfrep_grid
 from pipeline.distance.quality import field_report
 from pipeline.util.errors import InputError
-from stages.base import StageParams
+from pipeline.voxel.voxelise import LEAF_PEAK_BYTES, WORK_BYTES, estimate_interior_voxels
+from stages.base import FrepBand, StageParams
 
 REQUIRES = ("voxelise",)
 RESERVED = ("frep", "surface", "hfrep", "density", "component")
@@ -81,27 +82,22 @@ class Params(StageParams):
 
 
 def run(ctx, p: Params) -> dict:
-
-    if ctx.job.memory_estimate:  # the per-stage peak estimate checked before the run (config._check_memory)
-        ctx.manifest.setdefault("memory_estimate_bytes", dict(ctx.job.memory_estimate))
-    dom, frep = ctx.job.domain, ctx.blocks["frep"]
-    h, band = dom.voxel_size, float(ctx.data["band"])
+    dom, fb = ctx.job.domain, ctx.get(FrepBand)
+    frep, h, band = fb.blocks, dom.voxel_size, float(fb.band)
     maxd = 10 * h if p.max_distance is None else p.max_distance
     # with bricks, the (fine) FIM runs per brick on the workers, continued across brick faces
     # voxelise's leaves hold values of the right sign in every voxel: no flood fill of the band
-    solve_kw = {"brick": ctx.job.bricks, "map_fn": ctx.map, "signed_values": bool(ctx.data.get("frep_signed"))}
+    solve_kw = {"brick": ctx.job.bricks, "map_fn": ctx.map, "signed_values": fb.signed}
     if p.solver == "hfim":  # fine solve out to max_distance (default 16 voxels), coarse cells beyond
         reach = 16.0 if p.max_distance in (None, "domain") else p.max_distance / h
-        hres = hierarchical_distance(frep, (dom.index_min, dom.index_max), ctx.data["inside_boxes"],
+        hres = hierarchical_distance(frep, (dom.index_min, dom.index_max), fb.inside_boxes,
                                      fine_distance_vox=reach, order=p.order, **solve_kw)
         res = hres.fine
     else:
-        res = solve_distance(frep, maxd, (dom.index_min, dom.index_max), ctx.data["inside_boxes"], order=p.order,
+        res = solve_distance(frep, maxd, (dom.index_min, dom.index_max), fb.inside_boxes, order=p.order,
                              inside_distance=_inside_distance(p, maxd, band * h), **solve_kw)
     meta = ctx.grid_metadata("hfrep", p)
     hf = hfrep_blocks(frep, res, p.step, p.slope)
-    for name in ("surface", "hfrep", "density"):  # keep these first in the file, attributes after
-        ctx.grids[name] = None
     if p.quality:
         ctx.manifest.setdefault("quality", {}).update(field_report(frep, res, hf))
     stats = dict(res.stats)
@@ -121,8 +117,6 @@ def run(ctx, p: Params) -> dict:
         coarse = None if tiles is None else (tiles[0], np.clip(tiles[1] / (band * h), 0.0, 1.0))
         ctx.grids["density"] = density_grid(res, band * h, coarse)
         ctx.grids["density"].updateMetadata(meta)
-    else:
-        del ctx.grids["density"]
     if p.solver == "hfim":
         surface = hierarchical_grid(hres, "surface", background=band * h)  # SPEC: background = band * h
         stats["hfim"] = {k: v for k, v in hres.stats.items() if k != "fine"}
@@ -133,10 +127,44 @@ def run(ctx, p: Params) -> dict:
     return stats
 
 
+def grids(p: Params) -> list[str]:
+    """In the order they are written: surface, hfrep, density, then the attributes."""
+    return ["surface", "hfrep", *(["density"] if p.density else []), *(a.name for a in p.attributes)]
+
+
+HFREP_BYTES_PER_VOXEL = 30  # measured peak of the hfrep stage per interior voxel (docs/performance.md)
+# the same for the shell the coarse-interior solve works on: the demo at 1024^3 (session 8) adds
+# 1.75 GiB over what voxelise leaves for ~306 M shell voxels as estimated below (~6 bytes);
+# 10 keeps a margin (the old 30 refused the demo at 2048^3 with 37 GiB that needs ~12)
+SHELL_BYTES_PER_VOXEL = 10
+SHELL_BLOCKS_PER_LEAF = 5  # fine blocks of a coarse-interior hfrep solve per band leaf (4.4 measured, demo 512^3)
+
+
+def estimate_bytes(job, p: Params, band_bytes: float) -> tuple[float, str]:
+    """The band plus the voxels solved at full resolution: the whole interior, or with the
+    coarse interior (:func:`_inside_distance`) a shell of blocks around the band."""
+    fine = _solves_interior(p)
+    if fine:
+        band_vox = next(q.band for n, q in job.stages if n == "voxelise")  # REQUIRES voxelise
+        voxels = estimate_interior_voxels(job.model, job.domain, band_vox, job.t)
+    else:
+        voxels = SHELL_BLOCKS_PER_LEAF * max(band_bytes - WORK_BYTES, 0.0) / LEAF_PEAK_BYTES * 512.0
+    need = band_bytes + (HFREP_BYTES_PER_VOXEL if fine else SHELL_BYTES_PER_VOXEL) * voxels
+    what = "interior distance" if fine else "distance near the surface"
+    return need, f"its narrow band and the {what} of the hfrep stage"
+
+
+def _solves_interior(p: Params) -> bool:
+    """Whether the stage solves the whole interior at full resolution (the hierarchical solver
+    always does; so does the FIM for attributes, a full surface and distances to the domain)."""
+    return (p.interior == "fine" or bool(p.attributes) or p.surface == "full"
+            or p.max_distance == "domain" or p.solver == "hfim")
+
+
 def _inside_distance(p: Params, maxd, band_world: float) -> float | None:
     """How deep the fine solve goes inside: max_distance (at least the band) with the coarse
     interior, None (all of it) where the whole interior is wanted at full resolution."""
-    if p.interior == "fine" or p.attributes or p.surface == "full" or p.max_distance == "domain":
+    if _solves_interior(p):
         return None
     return max(float(maxd), band_world)
 

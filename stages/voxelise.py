@@ -13,7 +13,7 @@ from pydantic import Field
 
 from pipeline.sparse.grid import frep_to_vdb
 from pipeline.voxel.voxelise import assemble, bricks_for, merge_samples, root_size_for, sample_blocks, voxelise
-from stages.base import StageParams
+from stages.base import FrepBand, StageParams, band_only
 
 
 class Params(StageParams):
@@ -33,13 +33,17 @@ def run(ctx, p: Params) -> dict:
     grid = frep_to_vdb(res.blocks, res.inside_boxes, "frep", outside_boxes=res.outside_boxes, domain=(imin, imax))
     grid.updateMetadata({**ctx.grid_metadata("voxelise", p), "band_voxels": float(p.band)})
     ctx.grids["frep"] = grid
-    ctx.blocks["frep"] = res.blocks
-    ctx.data["inside_boxes"] = res.inside_boxes
-    ctx.data["band"] = p.band
     # every voxel of the leaves holds a value of its true sign (evaluated, or +-background by its
     # cell's proof; close_band puts each sign change in the band): hfrep needs no flood fill
-    ctx.data["frep_signed"] = True
+    ctx.put(FrepBand(res.blocks, res.inside_boxes, p.band, signed=True))
     return res.stats
+
+
+def grids(p: Params) -> list[str]:
+    return ["frep"]
+
+
+estimate_bytes = band_only  # the loader's band estimate is this stage's own peak
 
 
 def sample_brick(job, task):

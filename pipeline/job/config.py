@@ -39,10 +39,7 @@ from pipeline.oracles import REGISTRY, Node
 from pipeline.util.atomic import atomic_path
 from pipeline.util.errors import ConfigError, InputError, format_path
 from pipeline.voxel.voxelise import (
-    LEAF_PEAK_BYTES,
-    WORK_BYTES,
     estimate_band_bytes,
-    estimate_interior_voxels,
     root_size_for,
 )
 from stages import REGISTRY as STAGES
@@ -930,17 +927,6 @@ def _stages(raw: list, ctx: _Ctx, base: tuple = ("stages",)) -> list[tuple[str, 
     return out
 
 
-def _grids_made(name: str, params: Any) -> list[str]:
-    """Names of the grids a stage adds (stages/*.py ``run``: ctx.grids[...] = ...)."""
-    if name == "voxelise":
-        return ["frep"]
-    if name == "components":
-        return ["component"]
-    if name == "hfrep":
-        return ["surface", "hfrep", *(["density"] if params.density else []), *(a.name for a in params.attributes)]
-    return []
-
-
 def _check_grid_names(stages: list[tuple[str, Any]], ctx: _Ctx, base: tuple) -> None:
     """Grid names that export refers to must be made by a stage before it (else the run would
     fail after the expensive stages, or silently write less)."""
@@ -956,7 +942,7 @@ def _check_grid_names(stages: list[tuple[str, Any]], ctx: _Ctx, base: tuple) -> 
                         why = (f"no stage before export makes a grid named {clip(g, 60)!r}" if g not in made
                                else f"grid {g!r} is not in export.grids, so it is not written")
                         raise ctx.fail(base + (i, name, key, j), f"{why} (grids here: {', '.join(known) or 'none'})")
-        made.extend(_grids_made(name, params))
+        made.extend(STAGES[name].grids(params))
 
 
 def _normalised(job: Job, model_raw: Any) -> dict:
@@ -1024,11 +1010,6 @@ def _parse_path(s: str) -> list:
     return out
 
 
-HFREP_BYTES_PER_VOXEL = 30  # measured peak of the hfrep stage per interior voxel (docs/performance.md)
-# the same for the shell the coarse-interior solve works on: the demo at 1024^3 (session 8) adds
-# 1.75 GiB over what voxelise leaves for ~306 M shell voxels as estimated below (~6 bytes);
-# 10 keeps a margin (the old 30 refused the demo at 2048^3 with 37 GiB that needs ~12)
-SHELL_BYTES_PER_VOXEL = 10
 ROOT_CELL_BYTES = 160  # per top-level cell of the enumeration: its index arrays, boxes and bounds
 
 
@@ -1047,38 +1028,14 @@ def _check_memory(job: Job, ctx: _Ctx, base: tuple = ()) -> None:
     if roots * ROOT_CELL_BYTES > avail:
         _refuse_memory(job, ctx, base, roots * ROOT_CELL_BYTES, f"the {roots:.3g} top-level cells of voxelise", avail)
     band = estimate_band_bytes(job.model, job.domain, voxelise.band, job.t)
-    est = {n: band for n, _ in job.stages}  # every stage holds the band grids
-    hfrep = next((p for n, p in job.stages if n == "hfrep"), None)
-    if hfrep is not None:
-        per_voxel = HFREP_BYTES_PER_VOXEL if _hfrep_fine(hfrep) else SHELL_BYTES_PER_VOXEL
-        est["hfrep"] = band + per_voxel * _hfrep_voxels(job, hfrep, voxelise.band, band)
-    job.memory_estimate = {n: int(v) for n, v in est.items()}
-    stage = max(est, key=est.get)
-    if est[stage] > avail:
-        what = "its narrow band"
-        if stage == "hfrep":
-            what += " and the " + ("interior distance" if _hfrep_fine(hfrep) else "distance near the surface")
-            what += " of the hfrep stage"
-        _refuse_memory(job, ctx, base, est[stage], what, avail)
-
-
-SHELL_BLOCKS_PER_LEAF = 5  # fine blocks of a coarse-interior hfrep solve per band leaf (4.4 measured, demo 512^3)
-
-
-def _hfrep_fine(p: Any) -> bool:
-    """Whether the hfrep stage solves the whole interior at full resolution (stages.hfrep)."""
-    return (getattr(p, "interior", "fine") == "fine" or bool(p.attributes) or p.surface == "full"
-            or p.max_distance == "domain" or p.solver == "hfim")
-
-
-def _hfrep_voxels(job: Job, p: Any, band_vox: float, band_bytes: float) -> float:
-    """Voxels the hfrep stage solves at full resolution: the whole interior, or with the coarse
-    interior (stages.hfrep._inside_distance) a shell of blocks around the band."""
-
-    if _hfrep_fine(p):
-        return estimate_interior_voxels(job.model, job.domain, band_vox, job.t)
-    leaves = max(band_bytes - WORK_BYTES, 0.0) / LEAF_PEAK_BYTES
-    return SHELL_BLOCKS_PER_LEAF * leaves * 512.0
+    est: dict[str, tuple[float, str]] = {}
+    for name, params in job.stages:  # every stage holds the band grids, some more (stages.base)
+        need = STAGES[name].estimate_bytes(job, params, band)
+        est[name] = max(est.get(name, need), need, key=lambda x: x[0])
+    job.memory_estimate = {n: int(v) for n, (v, _) in est.items()}
+    stage = max(est, key=lambda n: est[n][0])
+    if est[stage][0] > avail:
+        _refuse_memory(job, ctx, base, est[stage][0], est[stage][1], avail)
 
 
 def _refuse_memory(job: Job, ctx: _Ctx, base: tuple, need: float, what: str, avail: float) -> None:

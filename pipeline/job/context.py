@@ -5,11 +5,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from pipeline.job.config import Job
 from pipeline.job.refs import call_with, ref_of
-from pipeline.sparse.grid import BlockGrid
+from pipeline.util.errors import RunError
+
+T = TypeVar("T")
 
 
 @dataclass
@@ -17,8 +19,7 @@ class JobContext:
     job: Job
     out_dir: Path  # <out>/<name>/
     grids: dict[str, Any] = field(default_factory=dict)  # name -> OpenVDB grid, in write order
-    blocks: dict[str, BlockGrid] = field(default_factory=dict)  # name -> sparse blocks
-    data: dict[str, Any] = field(default_factory=dict)  # stage results other stages use
+    results: dict[type, Any] = field(default_factory=dict)  # typed stage results (stages.base), by type
     outputs: list[dict] = field(default_factory=list)  # {"path", "kind"} relative to out_dir
     warnings: list[str] = field(default_factory=list)
     manifest: dict[str, Any] = field(default_factory=dict)  # extra manifest sections
@@ -39,6 +40,17 @@ class JobContext:
             return [fn(arg, x) for x in items]
         ref = ref_of(self.job)
         return self.executor.map(call_with, [(fn, ref, part, x) for x in items])
+
+    def put(self, result: Any) -> None:
+        """Hand a typed result (e.g. stages.base.FrepBand) to the stages after this one."""
+        self.results[type(result)] = result
+
+    def get(self, kind: type[T]) -> T:
+        """The result of type ``kind`` an earlier stage put (the loader checks ``REQUIRES``)."""
+        try:
+            return self.results[kind]
+        except KeyError:
+            raise RunError(f"no {kind.__name__}: the stage that makes it has not run") from None
 
     @property
     def voxel_size(self) -> float:

@@ -100,14 +100,18 @@ def _run_stage(ctx: JobContext, name: str, params) -> dict:
     if ctx.progress:
         ctx.progress(f"{name}")
     t0 = time.perf_counter()
+    stage = REGISTRY[name]
     try:
-        stats = REGISTRY[name].run(ctx, params) or {}
+        stats = stage.run(ctx, params) or {}
     except NonFiniteField as e:
         err = locate_nonfinite(ctx.job, e.point)
         raise err or ConfigError.one(ctx.job.config_path, None, ("model",), str(e)) from None
     except InputError as e:
         path = stage_path(ctx.job, params) + e.path
         raise ConfigError.one(ctx.job.config_path, line_of(ctx.job.raw, path), path, str(e)) from None
+    for grid in stage.grids(params):  # the grids a stage adds go in the order it declares
+        if grid in ctx.grids:
+            ctx.grids[grid] = ctx.grids.pop(grid)
     return {"name": name, "seconds": round(time.perf_counter() - t0, 4),
             "params": params.model_dump(mode="json", by_alias=True), "stats": stats}
 
@@ -133,6 +137,8 @@ def _manifest(ctx: JobContext, records: list[dict]) -> dict:
         m["meshes"] = meshes
     if job.frame:
         m["frame"] = job.frame
+    if job.memory_estimate:  # the per-stage peak estimate checked before the run (config._check_memory)
+        m["memory_estimate_bytes"] = dict(job.memory_estimate)
     m.update(ctx.manifest)
     return m
 

@@ -127,7 +127,7 @@ def continuation(model, lo: float, size: float, depth: int, on: bool) -> dict:
 
     cc.detect(model, np.full(3, lo), size, 3, continuation=on)
     t0 = time.perf_counter()
-    tree = cc.enumerate_cells(model, np.full(3, lo), size, depth, continuation=on)
+    tree = cc.enumerate_octree(model, np.full(3, lo), size, depth, continuation=on)
     t1 = time.perf_counter()
     comp = cc.label_cells(tree)
     return {"enumeration_s": t1 - t0, "detection_s": time.perf_counter() - t1, "count": comp.count,

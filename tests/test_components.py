@@ -86,8 +86,8 @@ def test_demo_model_gives_two():
 
 def test_continuation_off_is_plain_affine_subdivision_and_agrees():
     model = node({"union": [sphere((-0.4, 0, 0), 0.3), sphere((0.4, 0, 0), 0.3)]})
-    on = cc.enumerate_cells(model, *cube(), 7)
-    off = cc.enumerate_cells(model, *cube(), 7, continuation=False)
+    on = cc.enumerate_octree(model, *cube(), 7)
+    off = cc.enumerate_octree(model, *cube(), 7, continuation=False)
     assert on.stats["affine_skipped"] > 0 and off.stats["affine_skipped"] == 0
     assert off.stats["affine_tests"] > on.stats["affine_tests"]
     assert cc.label_cells(on).count == cc.label_cells(off).count == 2
@@ -102,7 +102,7 @@ def test_continuation_recovers_cells_the_descent_did_not_reach():
     nb = cc._unique_rows(cc._missing_edge_neighbours(have, signs, have, 64))
     assert {tuple(r) for r in nb} == {(4, 4, 5), (4, 5, 4), (4, 5, 5), (5, 4, 4), (5, 4, 5), (5, 5, 4)}
     # an unclipped descent reaches every cell across a sign-changing edge itself
-    full = cc.enumerate_cells(model, *cube(), 6)
+    full = cc.enumerate_octree(model, *cube(), 6)
     assert full.stats["continuation_cells"] == 0 and full.stats["border_cells"] > 0
 
 
@@ -236,7 +236,7 @@ def test_merged_neighbours_equal_the_search_of_every_face(coarse_level, monkeypa
     monkeypatch.setattr(cc, "COARSE_LEVEL", coarse_level)
     model = node({"union": [sphere((-0.45, 0.1, 0), 0.35), sphere((0.5, 0.1, 0), 0.3),
                             {"box": {"min": [0.05, -0.6, -0.5], "max": [0.8, 0.0, 0.45]}}]})
-    tree = cc.enumerate_cells(model, *cube(), 7)
+    tree = cc.enumerate_octree(model, *cube(), 7)
     keys, rows, off, levels, coarse, c = flat = tree.flat_tables()
     assert c == coarse_level and np.ptp(tree.level) >= 3
     same = coarser = missing = 0

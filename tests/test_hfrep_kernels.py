@@ -159,9 +159,10 @@ def test_surface_grid_consuming_the_solve_writes_the_same_grid(sph, monkeypatch)
 
 @pytest.mark.parametrize("keep, far", [(1.0, 0), (0.3, 0), (0.3, 100_000)])
 def test_neighbour_tables_equal_the_searches(keep: float, far: int) -> None:
-    """eikonal.block_neighbours / block_neighbours27 (a dense lattice of rows where it is small,
-    binary searches where it is not) against grid.block_index at every offset."""
-    from pipeline.distance.eikonal import _FACE_DIRS, _OFFS27, block_neighbours, block_neighbours27
+    """sparse.access.block_neighbours / block_neighbours27 (a dense lattice of rows where it is
+    small, binary searches where it is not) against grid.block_index at every offset; also from
+    bare origins in any order (rows then index that order)."""
+    from pipeline.sparse.access import FACE_DIRS, OFFSETS27, block_neighbours, block_neighbours27
     from pipeline.sparse.grid import BlockGrid
 
     rng = np.random.default_rng(3)
@@ -169,6 +170,12 @@ def test_neighbour_tables_equal_the_searches(keep: float, far: int) -> None:
     p = p[rng.random(len(p)) < keep]
     p[:, 2] += far * (p[:, 0] > 0)  # far: a lattice too large to hold densely (the searches)
     grid = BlockGrid(1.0, 1.0, p * 8, np.zeros((len(p), 8, 8, 8), np.float32), np.zeros((len(p), 8, 8, 8), bool))
-    for table, offs in ((block_neighbours(grid), _FACE_DIRS), (block_neighbours27(grid), _OFFS27)):
+    for table, offs in ((block_neighbours(grid), FACE_DIRS), (block_neighbours27(grid), OFFSETS27)):
         want = np.stack([grid.block_index(grid.origins + 8 * o) for o in offs], axis=1)
         assert np.array_equal(table, want) and (want >= 0).any()
+    shuffle = rng.permutation(len(grid.origins))
+    rank = np.argsort(shuffle)  # row in the shuffled list of each sorted row
+    for fn in (block_neighbours, block_neighbours27):
+        got = fn(grid.origins[shuffle])
+        want = fn(grid)[shuffle]
+        assert np.array_equal(got, np.where(want >= 0, rank[np.maximum(want, 0)], -1))

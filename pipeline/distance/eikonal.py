@@ -45,13 +45,11 @@ from scipy import ndimage
 
 from pipeline.distance.eikonal_bricks import BrickedFIM
 from pipeline.distance.fim import EXCLUDED, FREE, FROZEN, block_colour, fim, init_interface
+from pipeline.sparse.access import FACE_DIRS, block_neighbours, block_neighbours27
 from pipeline.sparse.blockwrite import mapped_empty, release_rows, write_batched, write_leaves
 from pipeline.sparse.grid import LEAF, BlockGrid, linear_transform, merge_sorted, pack_keys, vdb
 
 SECOND_ORDER_VISITS = 50  # block visits per block before a second-order pass is abandoned
-_FACE_DIRS = np.array(
-    [[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], dtype=np.int64
-)
 
 
 @dataclass
@@ -75,69 +73,7 @@ class EikonalResult:
     deep_mask: np.ndarray | None = None
 
 
-# --- block topology ---------------------------------------------------------------------
-def block_neighbours(grid: BlockGrid) -> np.ndarray:
-    """(L,6) rows of the face neighbours (-x,+x,-y,+y,-z,+z) of every block, -1 if absent."""
-    return _neighbour_rows(grid, _FACE_DIRS)
-
-
-_OFFS27 = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
-
-
-def block_neighbours27(grid: BlockGrid) -> np.ndarray:
-    """(L,27) blocks at every offset (-1..1)^3, row (dx+1)*9 + (dy+1)*3 + (dz+1); -1 if absent."""
-    return _neighbour_rows(grid, _OFFS27)
-
-
-def _neighbour_rows(grid: BlockGrid, offsets: np.ndarray) -> np.ndarray:
-    """Row of the block at each offset (in blocks) from every block, -1 where absent: looked up
-    in a dense int32 lattice of rows when that costs at most 16 entries per block (a parallel
-    pass), else by ``grid.block_index`` (binary searches)."""
-    n = len(grid.origins)
-    out = np.empty((n, len(offsets)), dtype=np.int64)
-    if n == 0:
-        return out
-    p = grid.origins >> 3
-    lo = p.min(axis=0) - 1
-    dims = p.max(axis=0) - lo + 2
-    if int(np.prod(dims)) > 16 * n + (1 << 20) or n >= 2**31:
-        for f, step in enumerate(offsets):
-            out[:, f] = grid.block_index(grid.origins + LEAF * step)
-        return out
-    table = np.full(tuple(int(x) for x in dims), -1, dtype=np.int32)
-    q = p - lo
-    table[q[:, 0], q[:, 1], q[:, 2]] = np.arange(n, dtype=np.int32)
-    _lookup_rows(table, q, np.ascontiguousarray(offsets, dtype=np.int64), out)
-    return out
-
-
-@njit(cache=True, parallel=True)
-def _lookup_rows(table, q, offsets, out):
-    for b in prange(q.shape[0]):
-        for f in range(offsets.shape[0]):
-            out[b, f] = table[q[b, 0] + offsets[f, 0], q[b, 1] + offsets[f, 1], q[b, 2] + offsets[f, 2]]
-
-
 # --- Numba kernels ----------------------------------------------------------------------
-@njit(cache=True, inline="always")
-def resolve_voxel(nbr, b, i, j, k):
-    """(block, i, j, k) of a voxel given in block b's local coordinates, where one index may be
-    -1 or 8 (a face neighbour in the next block); block -1 when that block does not exist."""
-    if i < 0:
-        b, i = nbr[b, 0], 7
-    elif i > 7:
-        b, i = nbr[b, 1], 0
-    elif j < 0:
-        b, j = nbr[b, 2], 7
-    elif j > 7:
-        b, j = nbr[b, 3], 0
-    elif k < 0:
-        b, k = nbr[b, 4], 7
-    elif k > 7:
-        b, k = nbr[b, 5], 0
-    return b, i, j, k
-
-
 @njit(cache=True)
 def _flood_sign(sign, nbr):
     """Give every voxel with sign 0 the sign of a 6-neighbour (breadth-first flood fill).
@@ -264,7 +200,7 @@ def _block_signs(
     dims = np.array(band_mask.shape)
     q = np.argwhere(band_mask)  # walk from the band blocks (the surface), not the lattice (the volume)
     q_rows = band_row[q[:, 0], q[:, 1], q[:, 2]]
-    for f, step in enumerate(_FACE_DIRS):  # face f of a band block touches the block at q + step
+    for f, step in enumerate(FACE_DIRS):  # face f of a band block touches the block at q + step
         p = q + step
         ok = np.all((p >= 0) & (p < dims), axis=1)
         pp, rows = p[ok], q_rows[ok]

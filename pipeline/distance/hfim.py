@@ -40,8 +40,9 @@ import numpy as np
 from numba import njit, prange
 from scipy import ndimage
 
-from pipeline.distance.eikonal import SECOND_ORDER_VISITS, EikonalResult, block_neighbours27, solve_distance
+from pipeline.distance.eikonal import SECOND_ORDER_VISITS, EikonalResult, solve_distance
 from pipeline.distance.fim import EXCLUDED, FREE, FROZEN, fim, upwind3
+from pipeline.sparse.access import block_neighbours27
 from pipeline.sparse.grid import LEAF, BlockGrid, linear_transform, pack_keys, vdb, write_blocks
 
 LEVEL_CELLS = (8, 128)  # cell edge in voxels of levels 1, 2: an OpenVDB leaf and an internal-node child
@@ -169,12 +170,10 @@ def lattice_fim(d, state, inside, spacing: float, tol: float, order2: bool, visi
     if len(where) == 0:
         return 0, 0
     db, sb, ib = _gather_blocks(d, state, inside, where, 1.0 / spacing)
-    grid = BlockGrid(1.0, 0.0, where * LEAF, np.zeros((len(where), 1, 1, 1), np.float32),
-                     np.zeros((len(where), 1, 1, 1), bool))
     colour = (where.sum(axis=1) & 1).astype(np.int64)
     seeds = np.flatnonzero((sb == FREE).reshape(len(sb), -1).any(axis=1)).astype(np.int64)
     cap = limit / spacing  # node_fim's limit holds on both sides of the surface
-    visits, updates, _, _ = fim(db, sb, ib, block_neighbours27(grid), colour, seeds, cap, tol / spacing, 64,
+    visits, updates, _, _ = fim(db, sb, ib, block_neighbours27(where * LEAF), colour, seeds, cap, tol / spacing, 64,
                                 order2, visits_per_block * len(db), cap)
     _scatter_free(d, db, sb, where, spacing)
     return int(updates), int(visits)

@@ -23,7 +23,7 @@ import numba
 import numpy as np
 from numba import njit
 
-from pipeline.distance.eikonal import block_neighbours, resolve_voxel
+from pipeline.sparse.access import block_neighbours, resolve_voxel
 from pipeline.sparse.grid import BlockGrid
 
 

@@ -28,7 +28,7 @@ import math
 import numpy as np
 from numba import njit
 
-from pipeline.distance.eikonal import block_neighbours
+from pipeline.sparse.access import block_neighbours
 from pipeline.sparse.grid import BlockGrid
 
 POLE = math.sqrt(3.0) - 2.0

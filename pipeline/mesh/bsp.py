@@ -49,7 +49,7 @@ from pipeline.field.small_lp import max_margin
 from pipeline.mesh import bsp_minmax
 from pipeline.mesh.bsp_build import BIG_NODE, plane_ids, subtree_sizes
 from pipeline.mesh.bsp_build import build as _build_compiled
-from pipeline.mesh.bsp_minmax import GENERAL, LEAF, NEG_ONLY, POS_ONLY, SPECIAL_B, SPECIAL_C
+from pipeline.mesh.bsp_minmax import GENERAL, LEAF_NODE, NEG_ONLY, POS_ONLY, SPECIAL_B, SPECIAL_C
 
 if TYPE_CHECKING:  # trimesh takes ~0.3 s to import; only the type is needed here
     import trimesh
@@ -60,7 +60,7 @@ KD_LEAF = 64  # ... down to nodes of this many triangles (see _build_tree_compil
 SMALL_MESH = 50000  # triangles up to which the compiled plane selection searches twice as much
 R0_SCALE = 2.0  # magnitude control of r0/sardf, in mesh diagonals (see BSPField.magnitude_scale)
 
-# node modes of the compiled tree: LEAF, POS_ONLY, NEG_ONLY, GENERAL, SPECIAL_B, SPECIAL_C (0..5)
+# node modes of the compiled tree: LEAF_NODE, POS_ONLY, NEG_ONLY, GENERAL, SPECIAL_B, SPECIAL_C (0..5)
 MODE_OPS = np.array([0, 1, 1, 4, 2, 2])  # binary R-functions per node mode
 
 
@@ -681,7 +681,7 @@ def _postorder(normals, offsets, pos, neg, splits, depth) -> Tree:
     remap = np.where(pos >= 0, new[np.maximum(pos, 0)], -1)[order]
     remapn = np.where(neg >= 0, new[np.maximum(neg, 0)], -1)[order]
     mode = np.where(remap >= 0, np.where(remapn >= 0, GENERAL, POS_ONLY),
-                    np.where(remapn >= 0, NEG_ONLY, LEAF))
+                    np.where(remapn >= 0, NEG_ONLY, LEAF_NODE))
     return Tree(np.ascontiguousarray(normals[order]), offsets[order].copy(), remap.astype(np.int64),
                 remapn.astype(np.int64), mode.astype(np.int64), splits, depth)
 

@@ -584,12 +584,12 @@ def build(tri0, own0, pn, pid, naive, seed, eps, maxc, sample, work, rule, big, 
 # triangles that are not strictly on the positive side of a plane are found by a query whose cost
 # follows the cap, not the node; removed triangles are flagged, split parts kept in a side list.
 
-LEAF = 8
+BVH_LEAF = 8
 
 
 @njit(cache=True)
 def _lbvh(tri, items):
-    """Morton order of items and the implicit complete-tree boxes (lo, hi) over leaves of LEAF."""
+    """Morton order of items and the implicit complete-tree boxes (lo, hi) over leaves of BVH_LEAF."""
     m = items.shape[0]
     cen = np.empty((m, 3))
     for i in range(m):
@@ -611,14 +611,14 @@ def _lbvh(tri, items):
                 c = (c << 1) | ((q[d] >> b) & 1)
         code[i] = c
     bi = items[np.argsort(code)]
-    nleaf = (m + LEAF - 1) // LEAF
+    nleaf = (m + BVH_LEAF - 1) // BVH_LEAF
     size = 1
     while size < nleaf:
         size *= 2
     lo = np.full((2 * size, 3), np.inf)
     hi = np.full((2 * size, 3), -np.inf)
     for i in range(m):
-        leaf = size + i // LEAF
+        leaf = size + i // BVH_LEAF
         for k in range(3):
             for d in range(3):
                 lo[leaf, d] = min(lo[leaf, d], tri[bi[i], k, d])
@@ -649,8 +649,8 @@ def _query(tri, bi, alive, lo, hi, size, n, c, thr, out):
         if low > thr:
             continue
         if j >= size:
-            start = (j - size) * LEAF
-            for i in range(start, min(m, start + LEAF)):
+            start = (j - size) * BVH_LEAF
+            for i in range(start, min(m, start + BVH_LEAF)):
                 if alive[i]:
                     t = bi[i]
                     if min(_dist(tri, t, 0, n, c), _dist(tri, t, 1, n, c), _dist(tri, t, 2, n, c)) <= thr:

@@ -3,7 +3,7 @@
 Node modes of a compiled BSP-tree (post-order arrays, root last; pipeline.mesh.bsp builds them) and
 the section 3.3.2 formula with min/max R-functions::
 
-    LEAF        f = fa
+    LEAF_NODE   f = fa
     POS_ONLY    f = min(fa, fb)
     NEG_ONLY    f = max(fa, fc)
     GENERAL     f = max(min(max(fa, fc), fb), min(-fa, fc))        (eq. 4)
@@ -35,7 +35,7 @@ from numba import njit, prange
 
 # node modes of the compiled tree; MIN2 / MAX2 (no plane: min / max of the two subtrees) occur
 # only in the evaluation tree of :func:`regroup_chains`
-LEAF, POS_ONLY, NEG_ONLY, GENERAL, SPECIAL_B, SPECIAL_C, MIN2, MAX2 = range(8)
+LEAF_NODE, POS_ONLY, NEG_ONLY, GENERAL, SPECIAL_B, SPECIAL_C, MIN2, MAX2 = range(8)
 CHAIN_MIN = 8  # chains shorter than this stay as they are
 
 
@@ -123,7 +123,7 @@ def point_value(px, py, pz, start, normals, offsets, pos, neg, mode, sj, sv):
         m = mode[j]
         if s == 0:  # MIN2 / MAX2 have a zero plane: fa = 0, positive subtree first
             fa = offsets[j] + normals[j, 0] * px + normals[j, 1] * py + normals[j, 2] * pz
-            if m == LEAF:
+            if m == LEAF_NODE:
                 ret = fa
                 top -= 1
                 continue
@@ -167,7 +167,7 @@ def point_plane(px, py, pz, start, normals, offsets, pos, neg, mode, sj, sv):
         m = mode[j]
         if s == 0:
             fa = offsets[j] + normals[j, 0] * px + normals[j, 1] * py + normals[j, 2] * pz
-            if m == LEAF:
+            if m == LEAF_NODE:
                 ret, rj, rs = fa, j, 1
                 top -= 1
                 continue
@@ -229,7 +229,7 @@ def box_bound(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, neg, m
             rad = abs(normals[j, 0]) * r0 + abs(normals[j, 1]) * r1 + abs(normals[j, 2]) * r2
             alo = centre - rad - pad
             ahi = centre + rad + pad
-            if m == LEAF:
+            if m == LEAF_NODE:
                 rlo, rhi, rstart = alo - pad, ahi + pad, j
                 top -= 1
                 continue
@@ -322,9 +322,9 @@ def specialise_box(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, n
             rad = abs(normals[j, 0]) * r0 + abs(normals[j, 1]) * r1 + abs(normals[j, 2]) * r2
             alo = centre - rad - pad
             ahi = centre + rad + pad
-            if m == LEAF:
+            if m == LEAF_NODE:
                 rlo, rhi, ridx = alo - pad, ahi + pad, k
-                k = _emit(j, -1, -1, LEAF, normals, offsets, cn, co, cp, cq, cm, k)
+                k = _emit(j, -1, -1, LEAF_NODE, normals, offsets, cn, co, cp, cq, cm, k)
                 top -= 1
                 continue
             sv[0, top] = alo
@@ -340,7 +340,7 @@ def specialise_box(lo0, lo1, lo2, hi0, hi1, hi2, start, normals, offsets, pos, n
                 plane = ahi <= rlo if m == POS_ONLY else alo >= rhi  # the plane always wins
                 if plane:
                     rlo, rhi, ridx = alo, ahi, k
-                    k = _emit(j, -1, -1, LEAF, normals, offsets, cn, co, cp, cq, cm, k)
+                    k = _emit(j, -1, -1, LEAF_NODE, normals, offsets, cn, co, cp, cq, cm, k)
                 elif not own:
                     if m == POS_ONLY:
                         rlo, rhi = min(alo, rlo), min(ahi, rhi)
@@ -398,7 +398,7 @@ def block_values(px, py, pz, npt, root, normals, offsets, pos, neg, mode, reg, f
     for k in range(root + 1):
         m = mode[k]
         n0, n1, n2, o = normals[k, 0], normals[k, 1], normals[k, 2], offsets[k]
-        if m == LEAF:
+        if m == LEAF_NODE:
             for v in range(npt):
                 reg[k, v] = o + n0 * px[v] + n1 * py[v] + n2 * pz[v]
             continue
@@ -555,7 +555,7 @@ def _regroup(pos, neg, mode, key):
                 k = pos[k] if m == POS_ONLY else neg[k]
             order = np.argsort(key[members], kind="mergesort")
             for t in range(len(members)):  # the planes as leaves, in normal order, then the tail
-                plane[cnt], op[cnt], oq[cnt], om[cnt] = members[order[t]], -1, -1, LEAF
+                plane[cnt], op[cnt], oq[cnt], om[cnt] = members[order[t]], -1, -1, LEAF_NODE
                 items[t] = cnt
                 cnt += 1
             items[len(members)] = res[k]

@@ -28,12 +28,12 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.distance.eikonal import block_neighbours27
 from pipeline.field.rkernels import r0_and
 from pipeline.model import ops
 from pipeline.model.base import Node
 from pipeline.model.tape import compile_model, evaluate_with
 from pipeline.model.tape_affine import affine_bounds
+from pipeline.sparse.access import block_neighbours27
 from pipeline.sparse.grid import LEAF
 
 INSIDE, BORDER = 1, 2
@@ -644,7 +644,7 @@ def _edge_neighbours(keys, signs, have, limit, i, ptr, out, at):
     return found
 
 
-def enumerate_cells(model: Node, origin, size: float, depth: int, t: float = 0.0,
+def enumerate_octree(model: Node, origin, size: float, depth: int, t: float = 0.0,
                     region: tuple[np.ndarray, np.ndarray] | None = None,
                     continuation: bool = True) -> Octree:
     """Algorithm 1 (adaptive spatial continuation), one vectorised pass per level.
@@ -893,7 +893,7 @@ def _first_keys(coords, level, depth, raw, count):
 def detect(model: Node, origin, size: float, depth: int, t: float = 0.0,
            region=None, continuation: bool = True) -> Components:
     """Algorithm 1 then section 4.2: the components of {f > 0} at tolerance size / 2**depth."""
-    return label_cells(enumerate_cells(model, origin, size, depth, t, region, continuation))
+    return label_cells(enumerate_octree(model, origin, size, depth, t, region, continuation))
 
 
 # --- Algorithm 2: coarsest level with the same count --------------------------------------------------

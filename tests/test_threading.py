@@ -50,3 +50,15 @@ def test_a_users_choice_of_layer_is_kept() -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_THREADING_LAYER")}
     env["NUMBA_THREADING_LAYER"] = "workqueue"
     assert _probe(env)[0] == "workqueue"
+
+
+def test_idle_openmp_threads_spin_briefly_unless_the_user_says() -> None:
+    """A short spin (pipeline.GOMP_SPINCOUNT) keeps two processes on two cores from slowing each
+    other; a user's OMP_WAIT_POLICY or GOMP_SPINCOUNT is kept."""
+    code = "import os, pipeline; print(os.environ.get('GOMP_SPINCOUNT'), os.environ.get('OMP_WAIT_POLICY'))"
+    base = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+    for extra, want in (({}, "10000 None"), ({"GOMP_SPINCOUNT": "5"}, "5 None"),
+                        ({"OMP_WAIT_POLICY": "active"}, "None active")):
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                           env={**base, **extra}, timeout=120)
+        assert r.stdout.strip() == want, (extra, r.stdout, r.stderr)

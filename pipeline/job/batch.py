@@ -21,6 +21,8 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
+import numba
+
 from pipeline.job.config import Job
 from pipeline.job.outputs import prepare_out_root
 from pipeline.job.refs import JobRef, load_ref, ref_of
@@ -30,19 +32,31 @@ from pipeline.util.errors import ConfigError, on_interrupt
 # --- executors ----------------------------------------------------------------------------------
 
 
-def share_cores(workers: int) -> None:
-    """In a worker process: Numba threads (the eikonal FIM's parallel waves) = this machine's
-    cores divided among ``workers`` processes, so a pool does not oversubscribe the cores."""
-    import numba
+def cores_per_worker(workers: int) -> int:
+    """Numba threads for each of ``workers`` processes on this machine: its cores divided
+    among them, so a pool does not oversubscribe the cores."""
+    return max(1, min(numba.config.NUMBA_NUM_THREADS, (os.cpu_count() or 1) // workers))
 
-    numba.set_num_threads(max(1, min(numba.config.NUMBA_NUM_THREADS, (os.cpu_count() or 1) // workers)))
+
+def share_cores(workers: int) -> None:
+    """In a worker process: run the parallel kernels (the eikonal FIM's waves, ...) on
+    :func:`cores_per_worker` threads. Numba's thread count belongs to the calling thread: call
+    it on the thread that runs the tasks (a pool worker's main thread; Dask's executor threads
+    get it per task, :func:`_with_threads`)."""
+    numba.set_num_threads(cores_per_worker(workers))
+
+
+def _with_threads(args: tuple[int, Callable, Any]) -> Any:
+    """A Dask task: ``fn(item)`` on ``threads`` Numba threads (set on the task's own thread)."""
+    threads, fn, item = args
+    numba.set_num_threads(threads)
+    return fn(item)
 
 
 def _worker_init(workers: int) -> None:
     """Pool worker start-up: share the cores; SIGTERM unwinds the running job (its staging
     folder is removed and its lock released) instead of killing the process mid-write."""
     import signal
-
 
     share_cores(workers)
     signal.signal(signal.SIGTERM, on_interrupt)
@@ -115,18 +129,23 @@ class DaskExecutor(Executor):
             self.cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
                                         processes=True, dashboard_address=None)
             self.client = Client(self.cluster)
-            n = len(self.client.scheduler_info()["workers"])
-            self.client.run(share_cores, n)  # our own workers share this machine's cores
         self.workers = len(self.client.scheduler_info()["workers"])
+        # our own workers share this machine's cores; a remote cluster's workers keep theirs
+        self.threads = cores_per_worker(self.workers) if self.cluster is not None else None
         self.address = self.client.scheduler.address
 
+    def _submit(self, fn, items):
+        if self.threads is None:
+            return self.client.map(fn, items, pure=False)
+        return self.client.map(_with_threads, [(self.threads, fn, x) for x in items], pure=False)
+
     def map(self, fn, items):
-        return self.client.gather(self.client.map(fn, items, pure=False))
+        return self.client.gather(self._submit(fn, items))
 
     def map_unordered(self, fn, items):
         from dask.distributed import as_completed as dask_completed
 
-        for f in dask_completed(self.client.map(fn, items, pure=False)):
+        for f in dask_completed(self._submit(fn, items)):
             yield f.result()
 
     def close(self, interrupted: bool = False):

@@ -135,10 +135,23 @@ def axis_index(name: str) -> int:
     return AXES[name]
 
 
+#: (u, v, w) as positions in (x, y, z), w along the axis; and back
+_TO_UVW = {"x": (1, 2, 0), "y": (2, 0, 1), "z": (0, 1, 2)}
+_TO_XYZ = {a: tuple(order.index(k) for k in range(3)) for a, order in _TO_UVW.items()}
+
+
 def permute(x, y, z, axis: str):
     """(u, v, w) with w along ``axis``: lets z-axis formulas serve any axis."""
-    if axis == "x":
-        return y, z, x
-    if axis == "y":
-        return z, x, y
-    return x, y, z
+    xyz = (x, y, z)
+    return tuple(xyz[i] for i in _TO_UVW[axis])
+
+
+def unpermute(u, v, w, axis: str):
+    """Inverse of :func:`permute`: back from (u, v, w) to (x, y, z)."""
+    uvw = (u, v, w)
+    return tuple(uvw[i] for i in _TO_XYZ[axis])
+
+
+def local_uvw(x, y, z, center, axis: str):
+    """(u, v, w) of the point relative to ``center``, w along ``axis``."""
+    return permute(x - center[0], y - center[1], z - center[2], axis)

@@ -64,32 +64,32 @@ def pow_(x, p: float):
         return np.power(x, p)
 
 
-def minimum(a, b):
+def _binary(a, b, code: int, on_forms, on_arrays):
+    """One binary operation on tape symbols (a clause), affine forms (the other operand lifted
+    to a form) or arrays."""
     if is_sym(a, b):
-        return tp.binary(tp.MIN, a, b)
+        return tp.binary(code, a, b)
     if is_form(a, b):
         like = a if isinstance(a, AffineForm) else b
-        return aa.minimum(_lift(a, like), _lift(b, like))
-    return np.minimum(a, b)
+        return on_forms(_lift(a, like), _lift(b, like))
+    return on_arrays(a, b)
+
+
+def _divide(a, b):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.true_divide(a, b)
+
+
+def minimum(a, b):
+    return _binary(a, b, tp.MIN, aa.minimum, np.minimum)
 
 
 def maximum(a, b):
-    if is_sym(a, b):
-        return tp.binary(tp.MAX, a, b)
-    if is_form(a, b):
-        like = a if isinstance(a, AffineForm) else b
-        return aa.maximum(_lift(a, like), _lift(b, like))
-    return np.maximum(a, b)
+    return _binary(a, b, tp.MAX, aa.maximum, np.maximum)
 
 
 def div(a, b):
-    if is_sym(a, b):
-        return tp.binary(tp.DIV, a, b)
-    if is_form(a, b):
-        like = a if isinstance(a, AffineForm) else b
-        return _lift(a, like) / _lift(b, like)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.true_divide(a, b)
+    return _binary(a, b, tp.DIV, lambda p, q: p / q, _divide)
 
 
 def length(*xs):

@@ -8,7 +8,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from pipeline.model import ops
-from pipeline.model.base import Node, Params, Real, Vec3, permute, register
+from pipeline.model.base import Node, Params, Real, Vec3, local_uvw, register
 
 Axis = Literal["x", "y", "z"]
 Positive = Field(gt=0)
@@ -66,7 +66,7 @@ class Cylinder(Node):
 
     def field(self, x, y, z, t):
         p = self.params
-        u, v, w = permute(x - p.center[0], y - p.center[1], z - p.center[2], p.axis)
+        u, v, w = local_uvw(x, y, z, p.center, p.axis)
         radial = ops.length(u, v) - p.radius
         if p.height is None:
             return -radial
@@ -91,7 +91,7 @@ class Cone(Node):
 
     def field(self, x, y, z, t):
         p = self.params
-        u, v, w = permute(x - p.center[0], y - p.center[1], z - p.center[2], p.axis)
+        u, v, w = local_uvw(x, y, z, p.center, p.axis)
         cos_a = p.height / (p.height**2 + p.radius**2) ** 0.5
         side = ((p.height - w) * (p.radius / p.height) - ops.length(u, v)) * cos_a
         slab = ops.minimum(w, p.height - w)
@@ -110,7 +110,7 @@ class Torus(Node):
 
     def field(self, x, y, z, t):
         p = self.params
-        u, v, w = permute(x - p.center[0], y - p.center[1], z - p.center[2], p.axis)
+        u, v, w = local_uvw(x, y, z, p.center, p.axis)
         return p.minor - ops.length(ops.length(u, v) - p.major, w)
 
 

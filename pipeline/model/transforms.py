@@ -14,18 +14,10 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from pipeline.model import ops
-from pipeline.model.base import Node, Params, Real, Vec3, permute, register
+from pipeline.model.base import Node, Params, Real, Vec3, local_uvw, register, unpermute
 
 Axis = Literal["x", "y", "z"]
 
-
-def _unpermute(u, v, w, axis: str):
-    """Inverse of base.permute: back from (u, v, w) to (x, y, z)."""
-    if axis == "x":
-        return w, u, v
-    if axis == "y":
-        return v, w, u
-    return u, v, w
 
 
 @register("translate")
@@ -121,10 +113,10 @@ class Twist(Node):
     def field(self, x, y, z, t):
         p = self.params
         c = p.center
-        u, v, w = permute(x - c[0], y - c[1], z - c[2], p.axis)
+        u, v, w = local_uvw(x, y, z, c, p.axis)
         th = (-math.radians(p.rate)) * w
         cs, sn = ops.cos(th), ops.sin(th)
-        q = _unpermute(cs * u - sn * v, sn * u + cs * v, w, p.axis)
+        q = unpermute(cs * u - sn * v, sn * u + cs * v, w, p.axis)
         return p.of.field(q[0] + c[0], q[1] + c[1], q[2] + c[2], t)
 
 
@@ -153,12 +145,12 @@ class Taper(Node):
     def field(self, x, y, z, t):
         p = self.params
         c = p.center
-        u, v, w = permute(x - c[0], y - c[1], z - c[2], p.axis)
+        u, v, w = local_uvw(x, y, z, c, p.axis)
         (w0, w1), (s0, s1) = p.range, p.scale
         ww = ops.minimum(ops.maximum(w + c["xyz".index(p.axis)], w0), w1)  # world height, clamped
         s = s0 + ((s1 - s0) / (w1 - w0)) * (ww - w0)
         inv = ops.div(1.0, s)
-        q = _unpermute(u * inv, v * inv, w, p.axis)
+        q = unpermute(u * inv, v * inv, w, p.axis)
         return min(s0, s1) * p.of.field(q[0] + c[0], q[1] + c[1], q[2] + c[2], t)
 
 

@@ -23,29 +23,8 @@ import numba
 import numpy as np
 from numba import njit
 
-from pipeline.sparse.access import block_neighbours, resolve_voxel
+from pipeline.sparse.access import block_neighbours, face_value, load_padded, load_padded_rows
 from pipeline.sparse.grid import BlockGrid
-
-
-@njit(cache=True, inline="always")
-def _nb(vals, act, nbr, b, i, j, k, f):
-    """(value, active) of the face neighbour f (-x,+x,-y,+y,-z,+z) of voxel (b,i,j,k)."""
-    if f == 0:
-        i -= 1
-    elif f == 1:
-        i += 1
-    elif f == 2:
-        j -= 1
-    elif f == 3:
-        j += 1
-    elif f == 4:
-        k -= 1
-    else:
-        k += 1
-    b, i, j, k = resolve_voxel(nbr, b, i, j, k)
-    if b < 0:
-        return 0.0, False
-    return vals[b, i, j, k], act[b, i, j, k]
 
 
 @njit(cache=True)
@@ -60,8 +39,8 @@ def _central_gradient(vals, act, nbr, h, grad, ok):
                         continue
                     good = True
                     for axis in range(3):
-                        lo, alo = _nb(vals, act, nbr, b, i, j, k, 2 * axis)
-                        hi, ahi = _nb(vals, act, nbr, b, i, j, k, 2 * axis + 1)
+                        lo, alo = face_value(vals, act, nbr, b, i, j, k, 2 * axis)
+                        hi, ahi = face_value(vals, act, nbr, b, i, j, k, 2 * axis + 1)
                         if not (alo and ahi):
                             good = False
                             break
@@ -73,17 +52,8 @@ HIST_MAX, HIST_BINS = 4.0, 40_000  # |grad| histogram: 1e-4 resolution for the p
 
 
 @njit(cache=True)
-def _load_padded(vals, act, nbr, b, buf, abuf):
-    """Block b and its six face layers (from the face neighbours) into (10,10,10) buffers."""
-    _load_padded_rows(vals, act, _SAME_ROWS, nbr, b, buf, abuf)
-
-
-_SAME_ROWS = np.zeros(0, np.int64)  # _load_padded_rows: block b is row b of the values
-
-
-@njit(cache=True)
 def _negate_inside(inside, nbr, b, buf):
-    """Negate the values of ``buf`` (block b and its face layers, :func:`_load_padded`) that lie
+    """Negate the values of ``buf`` (block b and its face layers, :func:`pipeline.sparse.access.load_padded`) that lie
     inside (``inside`` aligned with the blocks): the signed distance from the unsigned one."""
     for i in range(8):
         for j in range(8):
@@ -143,7 +113,7 @@ def _gradient_hist(vals, act, nbr, h, hist, chunks, inside):
         n = 0
         total = 0.0
         for b in range(c * nblk // chunks, (c + 1) * nblk // chunks):
-            _load_padded(vals, act, nbr, b, buf, abuf)
+            load_padded(vals, act, nbr, b, buf, abuf)
             if inside.shape[0]:
                 _negate_inside(inside, nbr, b, buf)
             for i in range(1, 9):
@@ -181,8 +151,8 @@ def _sign_flips(vals, act, ref, ref_act, rows, nbr, chunks):
         extra = 0
         edges = 0
         for b in range(c * nblk // chunks, (c + 1) * nblk // chunks):
-            _load_padded(vals, act, nbr, b, vb, ab)
-            _load_padded_rows(ref, ref_act, rows, nbr, b, rb, rab)
+            load_padded(vals, act, nbr, b, vb, ab)
+            load_padded_rows(ref, ref_act, rows, nbr, b, rb, rab)
             for i in range(1, 9):
                 for j in range(1, 9):
                     for k in range(1, 9):
@@ -200,42 +170,6 @@ def _sign_flips(vals, act, ref, ref_act, rows, nbr, chunks):
         out[c, 0] = extra
         out[c, 1] = edges
     return out[:, 0].sum(), out[:, 1].sum()
-
-
-@njit(cache=True)
-def _load_padded_rows(vals, act, rows, nbr, b, buf, abuf):
-    """:func:`_load_padded` of another grid's blocks: block b (and face neighbour n) is row
-    ``rows[b]`` (``rows[n]``) of ``vals``, row b itself when ``rows`` is empty; missing rows
-    read as inactive zeros."""
-    same = rows.shape[0] == 0
-    abuf[:] = False
-    buf[:] = 0.0
-    r = b if same else rows[b]
-    if r >= 0:
-        for i in range(8):
-            for j in range(8):
-                for k in range(8):
-                    buf[i + 1, j + 1, k + 1] = vals[r, i, j, k]
-                    abuf[i + 1, j + 1, k + 1] = act[r, i, j, k]
-    for f in range(6):
-        n = nbr[b, f]
-        r = n if same or n < 0 else rows[n]
-        if r < 0:
-            continue
-        for u in range(8):
-            for v in range(8):
-                if f == 0:
-                    buf[0, u + 1, v + 1], abuf[0, u + 1, v + 1] = vals[r, 7, u, v], act[r, 7, u, v]
-                elif f == 1:
-                    buf[9, u + 1, v + 1], abuf[9, u + 1, v + 1] = vals[r, 0, u, v], act[r, 0, u, v]
-                elif f == 2:
-                    buf[u + 1, 0, v + 1], abuf[u + 1, 0, v + 1] = vals[r, u, 7, v], act[r, u, 7, v]
-                elif f == 3:
-                    buf[u + 1, 9, v + 1], abuf[u + 1, 9, v + 1] = vals[r, u, 0, v], act[r, u, 0, v]
-                elif f == 4:
-                    buf[u + 1, v + 1, 0], abuf[u + 1, v + 1, 0] = vals[r, u, v, 7], act[r, u, v, 7]
-                else:
-                    buf[u + 1, v + 1, 9], abuf[u + 1, v + 1, 9] = vals[r, u, v, 0], act[r, u, v, 0]
 
 
 def central_gradient(grid: BlockGrid) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,9 @@
 """Sparse access: which block lies next to which, and the voxel a stencil reaches across a block
 face -- the one place block and voxel addressing is written (in the spirit of OpenVDB's
-ValueAccessor and math/Stencils.h). The solvers, the spline, the quality report and the
-component labelling all use these tables and kernels.
+ValueAccessor and math/Stencils.h): the neighbour tables, the voxel a face stencil reaches
+(:func:`resolve_voxel`, :func:`face_value`) and a block loaded with its six face layers
+(:func:`load_padded`). The solvers, the spline, the quality report and the component labelling
+use them; the FIM keeps its own two-layer loader in its hot loop (pipeline.distance.fim).
 
 Blocks are BlockGrid's 8^3 leaves, identified by their origins (multiples of 8); a table row
 lists, per block, the row of the block at each offset (in blocks), -1 where there is none.
@@ -86,3 +88,69 @@ def resolve_voxel(nbr, b, i, j, k):
     elif k > 7:
         b, k = nbr[b, 5], 0
     return b, i, j, k
+
+
+@njit(cache=True, inline="always")
+def face_value(vals, act, nbr, b, i, j, k, f):
+    """(value, active) of the face neighbour f (-x,+x,-y,+y,-z,+z) of voxel (b,i,j,k)."""
+    if f == 0:
+        i -= 1
+    elif f == 1:
+        i += 1
+    elif f == 2:
+        j -= 1
+    elif f == 3:
+        j += 1
+    elif f == 4:
+        k -= 1
+    else:
+        k += 1
+    b, i, j, k = resolve_voxel(nbr, b, i, j, k)
+    if b < 0:
+        return 0.0, False
+    return vals[b, i, j, k], act[b, i, j, k]
+
+
+@njit(cache=True)
+def load_padded(vals, act, nbr, b, buf, abuf):
+    """Block b and its six face layers (from the face neighbours) into (10,10,10) buffers."""
+    load_padded_rows(vals, act, _SAME_ROWS, nbr, b, buf, abuf)
+
+
+_SAME_ROWS = np.zeros(0, np.int64)  # load_padded_rows: block b is row b of the values
+
+
+@njit(cache=True)
+def load_padded_rows(vals, act, rows, nbr, b, buf, abuf):
+    """:func:`load_padded` of another grid's blocks: block b (and face neighbour n) is row
+    ``rows[b]`` (``rows[n]``) of ``vals``, row b itself when ``rows`` is empty; missing rows
+    read as inactive zeros."""
+    same = rows.shape[0] == 0
+    abuf[:] = False
+    buf[:] = 0.0
+    r = b if same else rows[b]
+    if r >= 0:
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    buf[i + 1, j + 1, k + 1] = vals[r, i, j, k]
+                    abuf[i + 1, j + 1, k + 1] = act[r, i, j, k]
+    for f in range(6):
+        n = nbr[b, f]
+        r = n if same or n < 0 else rows[n]
+        if r < 0:
+            continue
+        for u in range(8):
+            for v in range(8):
+                if f == 0:
+                    buf[0, u + 1, v + 1], abuf[0, u + 1, v + 1] = vals[r, 7, u, v], act[r, 7, u, v]
+                elif f == 1:
+                    buf[9, u + 1, v + 1], abuf[9, u + 1, v + 1] = vals[r, 0, u, v], act[r, 0, u, v]
+                elif f == 2:
+                    buf[u + 1, 0, v + 1], abuf[u + 1, 0, v + 1] = vals[r, u, 7, v], act[r, u, 7, v]
+                elif f == 3:
+                    buf[u + 1, 9, v + 1], abuf[u + 1, 9, v + 1] = vals[r, u, 0, v], act[r, u, 0, v]
+                elif f == 4:
+                    buf[u + 1, v + 1, 0], abuf[u + 1, v + 1, 0] = vals[r, u, v, 7], act[r, u, v, 7]
+                else:
+                    buf[u + 1, v + 1, 9], abuf[u + 1, v + 1, 9] = vals[r, u, v, 0], act[r, u, v, 0]

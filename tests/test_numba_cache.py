@@ -13,8 +13,13 @@ ROOT = Path(pipeline.__file__).resolve().parent
 
 
 def _compiled(tree: ast.Module) -> set[str]:
-    return {n.name for n in ast.walk(tree) if isinstance(n, ast.FunctionDef)
-            and any("jit" in ast.unparse(d) or "vectorize" in ast.unparse(d) for d in n.decorator_list)}
+    """Compiled functions: decorated with a jit, or made by one (``key3 = njit(...)(key_of)``)."""
+    decorated = {n.name for n in ast.walk(tree) if isinstance(n, ast.FunctionDef)
+                 and any("jit" in ast.unparse(d) or "vectorize" in ast.unparse(d) for d in n.decorator_list)}
+    made = {t.id for n in ast.walk(tree) if isinstance(n, ast.Assign) and isinstance(n.value, ast.Call)
+            and isinstance(n.value.func, ast.Call) and "jit" in ast.unparse(n.value.func.func)
+            for t in n.targets if isinstance(t, ast.Name)}
+    return decorated | made
 
 
 def _calls(fn: ast.FunctionDef) -> set[str]:

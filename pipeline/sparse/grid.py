@@ -27,13 +27,24 @@ except ImportError:  # pragma: no cover - depends on the platform
 
 LEAF = 8
 LEAF_LOG2 = 3
-_OFF = 1 << 20  # packing offset: index coordinates in [-2^20, 2^20) per axis
+KEY_BITS = 21  # bits per axis of a packed key
+KEY_OFFSET = 1 << 20  # pack_keys: signed index coordinates in [-2^20, 2^20) become non-negative
+
+
+def key_of(x, y, z):
+    """The int64 key of non-negative coordinates (each < 2^21), x-major: sorting the keys sorts
+    the points by x, then y, then z. The one definition of the layout; works on NumPy arrays,
+    and compiled code calls :func:`key3`."""
+    return (x << (2 * KEY_BITS)) | (y << KEY_BITS) | z
+
+
+key3 = njit(cache=True, inline="always")(key_of)  # key_of inside Numba kernels
 
 
 def pack_keys(ijk: np.ndarray) -> np.ndarray:
-    """Pack (N,3) integer coordinates into sortable int64 keys (21 bits per axis)."""
-    a = np.asarray(ijk, dtype=np.int64) + _OFF
-    return (a[:, 0] << 42) | (a[:, 1] << 21) | a[:, 2]
+    """Sortable int64 keys of (N,3) integer index coordinates in [-2^20, 2^20)."""
+    a = np.asarray(ijk, dtype=np.int64) + KEY_OFFSET
+    return key_of(a[:, 0], a[:, 1], a[:, 2])
 
 
 def merge_sorted(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -34,10 +34,10 @@ from pipeline.model.base import Node
 from pipeline.model.tape import compile_model, evaluate_with
 from pipeline.model.tape_affine import affine_bounds
 from pipeline.sparse.access import block_neighbours27
-from pipeline.sparse.grid import LEAF
+from pipeline.sparse.grid import KEY_BITS, KEY_OFFSET, LEAF, key3, key_of
 
 INSIDE, BORDER = 1, 2
-_BITS = 21  # bits per axis in packed keys (coordinates < 2**21)
+_BITS = KEY_BITS  # packed keys of cell coordinates (< 2**21): pipeline.sparse.grid.key_of
 _MASK = (1 << _BITS) - 1
 BOUND_CHUNK = 100_000
 _CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.int64)
@@ -51,7 +51,7 @@ def pack(ijk: np.ndarray) -> np.ndarray:
     """(N,3) non-negative integer coordinates -> int64 keys in x-major (scan) order."""
     a = np.asarray(ijk, np.int64)
     if len(a) < _PACK_SMALL:
-        return (a[:, 0] << (2 * _BITS)) | (a[:, 1] << _BITS) | a[:, 2]
+        return key_of(a[:, 0], a[:, 1], a[:, 2])
     return pack_rows(a)
 
 
@@ -77,7 +77,7 @@ def _pack_rows(coords, rows, every, shift):
     for i in numba.prange(n):
         r = np.int64(i) if every else rows[i]
         s = shift[i]
-        out[i] = ((coords[r, 0] >> s) << (2 * _BITS)) | ((coords[r, 1] >> s) << _BITS) | (coords[r, 2] >> s)
+        out[i] = key3(coords[r, 0] >> s, coords[r, 1] >> s, coords[r, 2] >> s)
     return out
 
 
@@ -249,7 +249,7 @@ def _find_one(x, y, z, level, keys, rows, off, levels, coarse, c):
         if s == e:
             continue
         sh = level - lv
-        q = ((x >> sh) << 42) | ((y >> sh) << 21) | (z >> sh)
+        q = key3(x >> sh, y >> sh, z >> sh)
         pos = _bsearch(keys, s, e, q)
         if pos >= 0:
             return rows[pos]
@@ -631,7 +631,7 @@ def _edge_neighbours(keys, signs, have, limit, i, ptr, out, at):
                     q0, q1, q2 = _moved(q0, q1, q2, v, sv * dv)
                     if min(q0, min(q1, q2)) < 0 or max(q0, max(q1, q2)) >= limit:
                         continue  # only the moved coordinates can leave the lattice
-                    q = (q0 << 42) | (q1 << 21) | q2
+                    q = key3(q0, q1, q2)
                     o = (q0 - x + 1) * 9 + (q1 - y + 1) * 3 + (q2 - z + 1)
                     j = ptr[o]
                     j = _lower_bound(have, 0, have.shape[0], q) if j < 0 else _gallop(have, j, have.shape[0], q)
@@ -884,7 +884,7 @@ def _first_keys(coords, level, depth, raw, count):
     first = np.full(count + 1, np.iinfo(np.int64).max)
     for i in range(raw.shape[0]):
         s = depth - level[i]
-        k = ((coords[i, 0] << s) << (2 * _BITS)) | ((coords[i, 1] << s) << _BITS) | (coords[i, 2] << s)
+        k = key3(coords[i, 0] << s, coords[i, 1] << s, coords[i, 2] << s)
         if k < first[raw[i]]:
             first[raw[i]] = k
     return first
@@ -979,13 +979,10 @@ def point_labels(comp: Components, points: np.ndarray) -> np.ndarray:
     return out
 
 
-_OFF20 = 1 << 20  # pipeline.sparse.grid.pack_keys offset
-
-
 @numba.njit(cache=True)
 def _block_row(bkeys, x, y, z):
     """Row of the block with origin (x, y, z) in the sorted pack_keys ``bkeys``, -1 if absent."""
-    q = ((x + _OFF20) << 42) | ((y + _OFF20) << 21) | (z + _OFF20)
+    q = key3(x + KEY_OFFSET, y + KEY_OFFSET, z + KEY_OFFSET)
     return _bsearch(bkeys, 0, bkeys.shape[0], q)
 
 
@@ -1125,7 +1122,7 @@ def _box_query(qlo, qhi, blo, bhi, bkeys, border, binsize, reach, mode, init):
         for bx in range(x0, x1 + 1):
             for by in range(y0, y1 + 1):
                 for bz in range(z0, z1 + 1):
-                    key = ((bx + border) << 42) | ((by + border) << 21) | (bz + border)
+                    key = key3(bx + border, by + border, bz + border)
                     s = np.searchsorted(bkeys, key)
                     while s < bkeys.shape[0] and bkeys[s] == key:
                         if mode == 0:
@@ -1172,7 +1169,7 @@ def _group_candidates(glo, ghi, c, rg, blo, bhi, bkeys, border, binsize, reach, 
     for bx in range(x0, x1 + 1):
         for by in range(y0, y1 + 1):
             for bz in range(z0, z1 + 1):
-                key = ((bx + border) << 42) | ((by + border) << 21) | (bz + border)
+                key = key3(bx + border, by + border, bz + border)
                 s = np.searchsorted(bkeys, key)
                 while s < bkeys.shape[0] and bkeys[s] == key:
                     d2 = 0.0
@@ -1326,7 +1323,7 @@ class _BoxIndex:
         self.reach = clamp + half
         centre = 0.5 * (lo + hi)
         b = np.floor(centre / self.binsize).astype(np.int64) + self.OFFSET
-        keys = (b[:, 0] << 42) | (b[:, 1] << 21) | b[:, 2]
+        keys = key_of(b[:, 0], b[:, 1], b[:, 2])
         order = np.argsort(keys, kind="stable")
         self.keys, self.lo, self.hi = keys[order], np.ascontiguousarray(lo[order]), np.ascontiguousarray(hi[order])
 
@@ -1338,7 +1335,7 @@ class _BoxIndex:
             return np.zeros(0)
         g = np.floor(p / self.binsize).astype(np.int64)
         g -= g.min(axis=0)
-        key = (g[:, 0] << 42) | (g[:, 1] << 21) | g[:, 2]
+        key = key_of(g[:, 0], g[:, 1], g[:, 2])
         order = np.argsort(key)  # the groups are what matters, not the order within one
         ks = key[order]
         gstart = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1], True]).astype(np.int64)

@@ -163,7 +163,6 @@ Shape.save = save
 def _stage_params(model: type, name: str, raw: dict) -> Any:
     from pydantic import ValidationError
 
-
     try:
         return model.model_validate(raw)
     except ValidationError as e:
@@ -221,7 +220,6 @@ def run(config_or_path: str | Path | dict, out: str | Path = "outputs", force: b
 
 
 def _overridden(path: Path, overrides: list[str] | tuple) -> dict:
-
     root = load_yaml(path)
     apply_overrides(root, overrides, str(path))
     return root

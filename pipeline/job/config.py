@@ -897,7 +897,6 @@ def _domain(d: DomainConfig, ctx: _Ctx, base: tuple = ()) -> Domain:
 
 
 def _stages(raw: list, ctx: _Ctx, base: tuple = ("stages",)) -> list[tuple[str, Any]]:
-
     out = []
     for i, item in enumerate(raw):
         path = base + (i,)

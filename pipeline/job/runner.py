@@ -96,7 +96,6 @@ def _record_failure(job: Job, folder: Path, e: Exception, staging: Path) -> None
 
 
 def _run_stage(ctx: JobContext, name: str, params) -> dict:
-
     if ctx.progress:
         ctx.progress(f"{name}")
     t0 = time.perf_counter()

@@ -19,7 +19,6 @@ from pipeline.model.base import Node, Params, Real, Vec3, local_uvw, register, u
 Axis = Literal["x", "y", "z"]
 
 
-
 @register("translate")
 class Translate(Node):
     class Params(Params):

@@ -150,7 +150,6 @@ def save(shape: Shape, path: str | Path, bounds: Any, voxel_size: float | None =
                          f".{', .'.join(WRITERS)})")
     grid = voxelise(shape, bounds, voxel_size, resolution, band=band, t=t)
     if kind == "vdb":
-
         write_vdb(path, [grid], {"creator": "frepvdb"})
     else:
         WRITERS[kind](path, zero_set(grid))

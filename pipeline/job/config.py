@@ -788,7 +788,7 @@ def write_config(root: Any, base_dir: Path, out_root: Path, stem: str) -> Path:
     """The effective config (a dict from Python, or a file with ``--set`` overrides applied) as a
     YAML file under ``<out>/.frepvdb-configs/`` that runs like the original: input paths made
     absolute (they were relative to ``base_dir``) and the job keeps its name. Workers and bricks
-    find their job again by config file (pipeline.job.batch.JobRef), so the run goes through it."""
+    find their job again by config file (pipeline.job.refs.JobRef), so the run goes through it."""
     data = _to_plain(root)
     if data.get("jobs") is None and not data.get("name"):
         data["name"] = stem
@@ -799,7 +799,6 @@ def write_config(root: Any, base_dir: Path, out_root: Path, stem: str) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{stem}-{hashlib.sha256(text.encode()).hexdigest()[:12]}.yaml"
     if not path.exists():
-
         with atomic_path(path) as tmp:
             tmp.write_text(text)
     return path
@@ -1014,9 +1013,9 @@ ROOT_CELL_BYTES = 160  # per top-level cell of the enumeration: its index arrays
 
 def _check_memory(job: Job, ctx: _Ctx, base: tuple = ()) -> None:
     """Refuse a domain whose grids would not fit in this machine's memory (estimates): the
-    top-level cells every voxelisation enumerates, then per stage (kept in ``job.memory_estimate``,
-    which the stages write into the manifest) the narrow band every stage holds plus the voxels
-    the hfrep stage solves at full resolution; the largest stage must fit."""
+    top-level cells every voxelisation enumerates, then each stage's own estimate from the
+    narrow band every stage holds (``estimate_bytes``, stages.base; kept in ``job.memory_estimate``,
+    which the runner writes into the manifest); the largest stage must fit."""
 
     voxelise = next((p for n, p in job.stages if n == "voxelise"), None)
     if voxelise is None or job.domain.dims.max() < 512:

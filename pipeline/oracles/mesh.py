@@ -52,7 +52,6 @@ class Mesh(Node):
         if not self.report.winding_consistent:
             mesh = self._repair_winding(mesh)
         if params.method == "bsp":
-
             self.impl = BSPField.from_mesh(mesh, rfunc=params.rfunc, planes=params.planes, seed=params.seed)
             self.stats = dict(self.impl.stats)
             nodes = self.stats["nodes"]
@@ -62,7 +61,6 @@ class Mesh(Node):
                     "voxel (minutes to hours at 256^3 for a tree this size); rfunc: min_max has the same zero set "
                     "and sign and evaluates only the nodes near each voxel (docs/performance.md)")
         else:
-
             try:
                 self.impl = ADFField.from_mesh(mesh, join=params.join, p=params.p)
             except ValueError as e:

@@ -21,8 +21,7 @@ from collections.abc import Callable
 import numpy as np
 
 from pipeline.distance.fim import FROZEN, block_colour, fim
-
-FACE_ROWS = np.array([4, 22, 10, 16, 12, 14])  # nbr27 rows of -x, +x, -y, +y, -z, +z
+from pipeline.sparse.access import FACE_ROWS27
 
 
 def brick_of_blocks(origins: np.ndarray, brick: int) -> np.ndarray:
@@ -58,7 +57,7 @@ class BrickedFIM:
         self.colour = block_colour(origins)
         self.n_bricks = int(self.brick_of.max()) + 1 if len(origins) else 0
         self.own = [np.nonzero(self.brick_of == b)[0] for b in range(self.n_bricks)]
-        face_nbr = nbr27[:, FACE_ROWS]
+        face_nbr = nbr27[:, FACE_ROWS27]
         self.ghosts = []
         for blocks in self.own:
             n = face_nbr[blocks].reshape(-1)
@@ -114,8 +113,8 @@ class BrickedFIM:
         """Blocks of other bricks that touch a changed block go on their brick's seed list."""
         if len(changed) == 0:
             return
-        n = self.nbr27[changed][:, FACE_ROWS].reshape(-1)
-        src = np.repeat(changed, len(FACE_ROWS))
+        n = self.nbr27[changed][:, FACE_ROWS27].reshape(-1)
+        src = np.repeat(changed, len(FACE_ROWS27))
         ok = (n >= 0)
         n, src = n[ok], src[ok]
         other = self.brick_of[n] != self.brick_of[src]

@@ -31,22 +31,13 @@ import numba
 import numpy as np
 from numba import njit
 
+from pipeline.field.stencils import central_gradient_at, half_difference
+from pipeline.sparse.access import ALL27, FACE_ROWS27, FACES27, load_ghosts
+
 FREE, FROZEN, EXCLUDED = 0, 1, 2
 PARALLEL_BLOCKS = 4096  # blocks (2 M voxels) from which the FIM runs its waves on all threads
-FACE_ROWS = np.array([4, 22, 10, 16, 12, 14])  # nbr27 rows of -x, +x, -y, +y, -z, +z
 QUADRIC_RESIDUAL = 0.02  # voxels: largest miss of the quadratic model at its stencil corners
 REL32 = 2.0**-22  # two float32 units relative: changes below them are rounding, not progress
-
-
-@njit(cache=True, inline="always")
-def locate(nbr27, b, i, j, k):
-    """(block, i, j, k) of local coordinates of block b that may lie in [-8, 15] on each axis;
-    block -1 when that block does not exist."""
-    di = -1 if i < 0 else (1 if i > 7 else 0)
-    dj = -1 if j < 0 else (1 if j > 7 else 0)
-    dk = -1 if k < 0 else (1 if k > 7 else 0)
-    n = nbr27[b, (di + 1) * 9 + (dj + 1) * 3 + (dk + 1)]
-    return n, i - 8 * di, j - 8 * dj, k - 8 * dk
 
 
 @njit(cache=True, inline="always")
@@ -81,39 +72,15 @@ def upwind3(b0, w0, b1, w1, b2, w2):
     return (s + math.sqrt(disc)) / a
 
 
-@njit(cache=True)
-def _load_block(d, inside, nbr27, b, buf, sbuf):
-    """Copy block b with two ghost layers on each face into the (12,12,12) buffers (distance
-    and side of the surface; edges and corners are not read by the axis stencils)."""
-    for i in range(8):
-        for j in range(8):
-            for k in range(8):
-                buf[i + 2, j + 2, k + 2] = d[b, i, j, k]
-                sbuf[i + 2, j + 2, k + 2] = inside[b, i, j, k]
-    for g in range(2):  # ghost layer g: buffer index 1-g below the block, 10+g above
-        lo, hi = 1 - g, 10 + g
-        src_lo, src_hi = 7 - g, g  # the neighbour's voxel layer that lies there
-        n0, n1 = nbr27[b, 4], nbr27[b, 22]
-        n2, n3 = nbr27[b, 10], nbr27[b, 16]
-        n4, n5 = nbr27[b, 12], nbr27[b, 14]
-        for u in range(8):
-            for v in range(8):
-                _ghost(d, inside, n0, src_lo, u, v, buf, sbuf, lo, u + 2, v + 2)
-                _ghost(d, inside, n1, src_hi, u, v, buf, sbuf, hi, u + 2, v + 2)
-                _ghost(d, inside, n2, u, src_lo, v, buf, sbuf, u + 2, lo, v + 2)
-                _ghost(d, inside, n3, u, src_hi, v, buf, sbuf, u + 2, hi, v + 2)
-                _ghost(d, inside, n4, u, v, src_lo, buf, sbuf, u + 2, v + 2, lo)
-                _ghost(d, inside, n5, u, v, src_hi, buf, sbuf, u + 2, v + 2, hi)
-
-
 @njit(cache=True, inline="always")
-def _ghost(d, inside, n, i, j, k, buf, sbuf, bi, bj, bk):
-    if n < 0:
-        buf[bi, bj, bk] = np.inf
-        sbuf[bi, bj, bk] = False
-    else:
-        buf[bi, bj, bk] = d[n, i, j, k]
-        sbuf[bi, bj, bk] = inside[n, i, j, k]
+def _load_block(d, inside, nbr27, b, buf, sbuf):
+    """Block b with two ghost layers on each face into the (12,12,12) buffers (distance and side
+    of the surface; an absent neighbour reads as unknown, inf and outside; edges and corners are
+    not read by the axis stencils)."""
+    load_ghosts(d, inside, _SAME_ROWS, nbr27, FACES27, b, 2, np.inf, buf, sbuf)
+
+
+_SAME_ROWS = np.zeros(0, np.int64)
 
 
 @njit(cache=True, inline="always")
@@ -300,7 +267,7 @@ def _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty):
         b = work[t]
         for f in range(6):
             if out[t, 0] & (1 << f):
-                n = nbr27[b, FACE_ROWS[f]]
+                n = nbr27[b, FACE_ROWS27[f]]
                 if n >= 0:
                     dirty[n] |= 1 << (f ^ 1)  # n's ghost layer on the face it shares with b
                 if n >= 0 and not on_list[n]:
@@ -375,27 +342,12 @@ def block_colour(origins: np.ndarray) -> np.ndarray:
 
 
 # --- initialisation next to the zero set -------------------------------------------------------
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _load_frep(f, fact, brow, nbr27, b, fb, ab):
     """Block b's frep values and their known flags with one layer of every neighbour (faces,
     edges, corners) into (10,10,10) buffers (local index + 1; block n of the working set is
     row ``brow[n]`` of ``f``, unknown where -1)."""
-    r0 = brow[b]
-    for i in range(-1, 9):
-        for j in range(-1, 9):
-            for k in range(-1, 9):
-                if 0 <= i < 8 and 0 <= j < 8 and 0 <= k < 8:
-                    ab[i + 1, j + 1, k + 1] = fact[r0, i, j, k]
-                    fb[i + 1, j + 1, k + 1] = f[r0, i, j, k]
-                    continue
-                n, li, lj, lk = locate(nbr27, b, i, j, k)
-                r = brow[n] if n >= 0 else -1
-                if r < 0 or not fact[r, li, lj, lk]:
-                    ab[i + 1, j + 1, k + 1] = False
-                    fb[i + 1, j + 1, k + 1] = 0.0
-                else:
-                    ab[i + 1, j + 1, k + 1] = True
-                    fb[i + 1, j + 1, k + 1] = f[r, li, lj, lk]
+    load_ghosts(f, fact, brow, nbr27, ALL27, b, 1, 0.0, fb, ab)
 
 
 @njit(cache=True)
@@ -412,9 +364,7 @@ def _quadric_fit(fb, ab, i, j, k, g, hess, vals):
                     return False
                 vals[di, dj, dk] = fb[i + di - 1, j + dj - 1, k + dk - 1]
     c = vals[1, 1, 1]
-    g[0] = 0.5 * (vals[2, 1, 1] - vals[0, 1, 1])
-    g[1] = 0.5 * (vals[1, 2, 1] - vals[1, 0, 1])
-    g[2] = 0.5 * (vals[1, 1, 2] - vals[1, 1, 0])
+    g[0], g[1], g[2], _ = central_gradient_at(fb, ab, i, j, k)
     hess[0, 0] = vals[2, 1, 1] - 2.0 * c + vals[0, 1, 1]
     hess[1, 1] = vals[1, 2, 1] - 2.0 * c + vals[1, 0, 1]
     hess[2, 2] = vals[1, 1, 2] - 2.0 * c + vals[1, 1, 0]
@@ -551,13 +501,6 @@ def _crossing_cap(fb, ab, i, j, k, fv):
             cap = min(cap, fv / (fv - fl))
         if ah and (fv > 0.0) != (fh > 0.0):
             cap = min(cap, fv / (fv - fh))
-        if al and ah:
-            gg = 0.5 * (fh - fl)
-        elif ah:
-            gg = fh - fv
-        elif al:
-            gg = fv - fl
-        else:
-            gg = 0.0
+        gg = half_difference(fl, al, fv, fh, ah)
         g2 += gg * gg
     return cap, g2

@@ -23,65 +23,45 @@ import numba
 import numpy as np
 from numba import njit
 
-from pipeline.sparse.access import block_neighbours, face_value, load_padded, load_padded_rows
+from pipeline.field.stencils import central_gradient_at
+from pipeline.sparse.access import FACES6, block_neighbours, load_ghosts, load_padded, load_padded_rows
 from pipeline.sparse.grid import BlockGrid
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _central_gradient(vals, act, nbr, h, grad, ok):
-    """Central-difference gradient where the voxel and its 6 neighbours are active."""
-    for b in range(vals.shape[0]):
+    """Central-difference gradient (world units) where the voxel and its 6 neighbours are active."""
+    for b in numba.prange(vals.shape[0]):
+        buf = np.empty((10, 10, 10))
+        abuf = np.empty((10, 10, 10), dtype=np.bool_)
+        load_padded(vals, act, nbr, b, buf, abuf)
         for i in range(8):
             for j in range(8):
                 for k in range(8):
-                    ok[b, i, j, k] = False
-                    if not act[b, i, j, k]:
-                        continue
-                    good = True
-                    for axis in range(3):
-                        lo, alo = face_value(vals, act, nbr, b, i, j, k, 2 * axis)
-                        hi, ahi = face_value(vals, act, nbr, b, i, j, k, 2 * axis + 1)
-                        if not (alo and ahi):
-                            good = False
-                            break
-                        grad[b, i, j, k, axis] = (hi - lo) / (2.0 * h)
+                    gx, gy, gz, good = central_gradient_at(buf, abuf, i + 1, j + 1, k + 1)
                     ok[b, i, j, k] = good
+                    if good:
+                        grad[b, i, j, k, 0], grad[b, i, j, k, 1], grad[b, i, j, k, 2] = gx / h, gy / h, gz / h
 
 
 HIST_MAX, HIST_BINS = 4.0, 40_000  # |grad| histogram: 1e-4 resolution for the percentiles
 
 
 @njit(cache=True)
-def _negate_inside(inside, nbr, b, buf):
-    """Negate the values of ``buf`` (block b and its face layers, :func:`pipeline.sparse.access.load_padded`) that lie
-    inside (``inside`` aligned with the blocks): the signed distance from the unsigned one."""
-    for i in range(8):
-        for j in range(8):
-            for k in range(8):
-                if inside[b, i, j, k]:
-                    buf[i + 1, j + 1, k + 1] = -buf[i + 1, j + 1, k + 1]
-    for u in range(8):
-        for v in range(8):
-            n = nbr[b, 0]
-            if n >= 0 and inside[n, 7, u, v]:
-                buf[0, u + 1, v + 1] = -buf[0, u + 1, v + 1]
-            n = nbr[b, 1]
-            if n >= 0 and inside[n, 0, u, v]:
-                buf[9, u + 1, v + 1] = -buf[9, u + 1, v + 1]
-            n = nbr[b, 2]
-            if n >= 0 and inside[n, u, 7, v]:
-                buf[u + 1, 0, v + 1] = -buf[u + 1, 0, v + 1]
-            n = nbr[b, 3]
-            if n >= 0 and inside[n, u, 0, v]:
-                buf[u + 1, 9, v + 1] = -buf[u + 1, 9, v + 1]
-            n = nbr[b, 4]
-            if n >= 0 and inside[n, u, v, 7]:
-                buf[u + 1, v + 1, 0] = -buf[u + 1, v + 1, 0]
-            n = nbr[b, 5]
-            if n >= 0 and inside[n, u, v, 0]:
-                buf[u + 1, v + 1, 9] = -buf[u + 1, v + 1, 9]
+def _negate_inside(inside, nbr, b, buf, ibuf):
+    """Negate the values of ``buf`` (block b and its face layers, :func:`pipeline.sparse.access.load_padded`)
+    that lie inside (``inside`` aligned with the blocks): the signed distance from the unsigned
+    one. ``ibuf``: a (10,10,10) bool work buffer."""
+    ibuf[:] = False
+    load_ghosts(inside, inside, _SAME_ROWS, nbr, FACES6, b, 1, False, ibuf, ibuf)
+    for i in range(10):
+        for j in range(10):
+            for k in range(10):
+                if ibuf[i, j, k]:
+                    buf[i, j, k] = -buf[i, j, k]
 
 
+_SAME_ROWS = np.zeros(0, np.int64)
 _NO_SIGN = np.zeros((0, 8, 8, 8), np.bool_)
 
 
@@ -102,7 +82,7 @@ def _gradient_hist(vals, act, nbr, h, hist, chunks, inside):
     is added per range)."""
     nb = hist.shape[0]
     scale = nb / HIST_MAX
-    inv = 1.0 / (2.0 * h)
+    inv = 1.0 / h
     nblk = vals.shape[0]
     hists = np.zeros((chunks, nb), np.int64)
     ns = np.zeros(chunks, np.int64)
@@ -110,21 +90,19 @@ def _gradient_hist(vals, act, nbr, h, hist, chunks, inside):
     for c in numba.prange(chunks):
         buf = np.zeros((10, 10, 10))
         abuf = np.zeros((10, 10, 10), dtype=np.bool_)
+        ibuf = np.zeros((10, 10, 10), dtype=np.bool_)
         n = 0
         total = 0.0
         for b in range(c * nblk // chunks, (c + 1) * nblk // chunks):
             load_padded(vals, act, nbr, b, buf, abuf)
             if inside.shape[0]:
-                _negate_inside(inside, nbr, b, buf)
+                _negate_inside(inside, nbr, b, buf, ibuf)
             for i in range(1, 9):
                 for j in range(1, 9):
                     for k in range(1, 9):
-                        if not (abuf[i, j, k] and abuf[i - 1, j, k] and abuf[i + 1, j, k] and abuf[i, j - 1, k]
-                                and abuf[i, j + 1, k] and abuf[i, j, k - 1] and abuf[i, j, k + 1]):
+                        dx, dy, dz, good = central_gradient_at(buf, abuf, i, j, k)
+                        if not good:
                             continue
-                        dx = buf[i + 1, j, k] - buf[i - 1, j, k]
-                        dy = buf[i, j + 1, k] - buf[i, j - 1, k]
-                        dz = buf[i, j, k + 1] - buf[i, j, k - 1]
                         g = math.sqrt(dx * dx + dy * dy + dz * dz) * inv
                         hists[c, min(int(g * scale), nb - 1)] += 1
                         n += 1

@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit, prange
 
 from pipeline.field.rkernels import compress, r0_and, sardf_and
+from pipeline.field.stencils import half_difference
 from pipeline.mesh.bsp_minmax import (
     BLOCK_TREE_MAX,
     BVH_STACK,
@@ -697,21 +698,14 @@ def _mark_block(v, valid, q, h, band, out) -> int:
                 f = blk[i, j, k]
                 g2 = 0.0
                 change = f == 0.0
-                for axis in range(3):
-                    lo_i, lo_j, lo_k, hi_i, hi_j, hi_k = i, j, k, i, j, k
+                for axis in range(3):  # first order is enough to decide band membership
                     c = i if axis == 0 else (j if axis == 1 else k)
-                    if axis == 0:
-                        lo_i, hi_i = max(i - 1, 0), min(i + 1, b - 1)
-                    elif axis == 1:
-                        lo_j, hi_j = max(j - 1, 0), min(j + 1, b - 1)
-                    else:
-                        lo_k, hi_k = max(k - 1, 0), min(k + 1, b - 1)
-                    span = (min(c + 1, b - 1) - max(c - 1, 0)) * h
-                    a1 = blk[lo_i, lo_j, lo_k]
-                    a2 = blk[hi_i, hi_j, hi_k]
-                    if span > 0:
-                        d = (a2 - a1) / span
-                        g2 += d * d
+                    di, dj, dk = int(axis == 0), int(axis == 1), int(axis == 2)
+                    lo_ok, hi_ok = c > 0, c < b - 1  # within the block: one-sided at its faces
+                    a1 = blk[i - di, j - dj, k - dk] if lo_ok else f
+                    a2 = blk[i + di, j + dj, k + dk] if hi_ok else f
+                    d = half_difference(a1, lo_ok, f, a2, hi_ok) / h
+                    g2 += d * d
                     if (a1 > 0) != (f > 0) or (a2 > 0) != (f > 0):
                         change = True
                 out[q, i, j, k] = valid[q, i, j, k] and (change or abs(f) <= lim * np.sqrt(g2))

@@ -1,9 +1,10 @@
-"""Sparse access: which block lies next to which, and the voxel a stencil reaches across a block
-face -- the one place block and voxel addressing is written (in the spirit of OpenVDB's
-ValueAccessor and math/Stencils.h): the neighbour tables, the voxel a face stencil reaches
-(:func:`resolve_voxel`, :func:`face_value`) and a block loaded with its six face layers
-(:func:`load_padded`). The solvers, the spline, the quality report and the component labelling
-use them; the FIM keeps its own two-layer loader in its hot loop (pipeline.distance.fim).
+"""Sparse access: which block lies next to which, and a block loaded with ghost layers of its
+neighbours -- the one place block and voxel addressing is written (in the spirit of OpenVDB's
+ValueAccessor): the neighbour tables (:func:`block_neighbours`, :func:`block_neighbours27`) and
+:func:`load_ghosts`, which copies a block and any number of layers of its face, edge and corner
+neighbours into a buffer, so that a kernel's voxel loop runs without lookups. The solvers, the
+spline, the quality report and the component labelling use them; the stencils that read the
+buffers are in :mod:`pipeline.field.stencils`.
 
 Blocks are BlockGrid's 8^3 leaves, identified by their origins (multiples of 8); a table row
 lists, per block, the row of the block at each offset (in blocks), -1 where there is none.
@@ -70,87 +71,77 @@ def _lookup_rows(table, q, offsets, out):
             out[b, f] = table[q[b, 0] + offsets[f, 0], q[b, 1] + offsets[f, 1], q[b, 2] + offsets[f, 2]]
 
 
-@njit(cache=True, inline="always")
-def resolve_voxel(nbr, b, i, j, k):
-    """(block, i, j, k) of a voxel given in block b's local coordinates, where one index may be
-    -1 or 8 (a face neighbour in the next block, ``nbr`` from :func:`block_neighbours`); block
-    -1 when that block does not exist."""
-    if i < 0:
-        b, i = nbr[b, 0], 7
-    elif i > 7:
-        b, i = nbr[b, 1], 0
-    elif j < 0:
-        b, j = nbr[b, 2], 7
-    elif j > 7:
-        b, j = nbr[b, 3], 0
-    elif k < 0:
-        b, k = nbr[b, 4], 7
-    elif k > 7:
-        b, k = nbr[b, 5], 0
-    return b, i, j, k
+@njit(cache=True)
+def load_ghosts(vals, act, rows, nbr, cols, b, w, missing, buf, abuf):
+    """Block b and ``w`` (1..8) layers of the neighbours that ``cols`` lists into ((8 + 2w)^3)
+    buffers: voxel (i, j, k) of block b at (i + w, j + w, k + w), ``act`` into ``abuf``.
+
+    ``cols[o]`` is the column of ``nbr`` that holds the neighbour at offset ``OFFSETS27[o]``, -1
+    for an offset not to load (:data:`FACES6`, :data:`FACES27`, :data:`ALL27`); the centre is
+    always loaded. Block n's values are row ``rows[n]`` of ``vals`` (another grid's blocks), row
+    n itself when ``rows`` is empty. Where a block or its row is absent the buffer holds
+    ``missing`` and abuf False; cells of offsets not loaded are left as they are."""
+    same = rows.shape[0] == 0
+    for o in range(27):
+        if o == 13:
+            n = b
+        elif cols[o] < 0:
+            continue
+        else:
+            n = nbr[b, cols[o]]
+        r = n if same or n < 0 else rows[n]
+        x0, nx, sx = _span(o // 9 - 1, w)
+        y0, ny, sy = _span((o // 3) % 3 - 1, w)
+        z0, nz, sz = _span(o % 3 - 1, w)
+        for i in range(nx):
+            for j in range(ny):
+                for k in range(nz):
+                    if r < 0:
+                        buf[x0 + i, y0 + j, z0 + k] = missing
+                        abuf[x0 + i, y0 + j, z0 + k] = False
+                    else:
+                        buf[x0 + i, y0 + j, z0 + k] = vals[r, sx + i, sy + j, sz + k]
+                        abuf[x0 + i, y0 + j, z0 + k] = act[r, sx + i, sy + j, sz + k]
 
 
 @njit(cache=True, inline="always")
-def face_value(vals, act, nbr, b, i, j, k, f):
-    """(value, active) of the face neighbour f (-x,+x,-y,+y,-z,+z) of voxel (b,i,j,k)."""
-    if f == 0:
-        i -= 1
-    elif f == 1:
-        i += 1
-    elif f == 2:
-        j -= 1
-    elif f == 3:
-        j += 1
-    elif f == 4:
-        k -= 1
-    else:
-        k += 1
-    b, i, j, k = resolve_voxel(nbr, b, i, j, k)
-    if b < 0:
-        return 0.0, False
-    return vals[b, i, j, k], act[b, i, j, k]
+def _span(d, w):
+    """(first buffer cell, count, first source voxel) along one axis for a block offset d in -1..1."""
+    if d < 0:
+        return 0, w, 8 - w
+    if d == 0:
+        return w, 8, 0
+    return 8 + w, w, 0
+
+
+def _columns(offset_rows: list[int], table_cols: list[int]) -> np.ndarray:
+    out = np.full(27, -1, np.int64)
+    out[offset_rows] = table_cols
+    return out
+
+
+#: rows of :data:`OFFSETS27` (and columns of a :func:`block_neighbours27` table) of the six faces -x, +x, -y, +y, -z, +z
+FACE_ROWS27 = np.array([4, 22, 10, 16, 12, 14], dtype=np.int64)
+#: :func:`load_ghosts` columns: the six faces of a :func:`block_neighbours` table
+FACES6 = _columns(list(FACE_ROWS27), list(range(6)))
+#: :func:`load_ghosts` columns: the six faces of a :func:`block_neighbours27` table
+FACES27 = _columns(list(FACE_ROWS27), list(FACE_ROWS27))
+#: :func:`load_ghosts` columns: every offset of a :func:`block_neighbours27` table (edges, corners)
+ALL27 = np.arange(27, dtype=np.int64)
+_SAME_ROWS = np.zeros(0, np.int64)  # block n is row n of the values
 
 
 @njit(cache=True)
 def load_padded(vals, act, nbr, b, buf, abuf):
-    """Block b and its six face layers (from the face neighbours) into (10,10,10) buffers."""
+    """Block b and its six face layers (a :func:`block_neighbours` table) into (10,10,10)
+    buffers; edges and corners and absent faces read as inactive zeros."""
     load_padded_rows(vals, act, _SAME_ROWS, nbr, b, buf, abuf)
-
-
-_SAME_ROWS = np.zeros(0, np.int64)  # load_padded_rows: block b is row b of the values
 
 
 @njit(cache=True)
 def load_padded_rows(vals, act, rows, nbr, b, buf, abuf):
-    """:func:`load_padded` of another grid's blocks: block b (and face neighbour n) is row
-    ``rows[b]`` (``rows[n]``) of ``vals``, row b itself when ``rows`` is empty; missing rows
-    read as inactive zeros."""
-    same = rows.shape[0] == 0
-    abuf[:] = False
+    """:func:`load_padded` of another grid's blocks: block n is row ``rows[n]`` of ``vals``
+    (row n itself when ``rows`` is empty)."""
     buf[:] = 0.0
-    r = b if same else rows[b]
-    if r >= 0:
-        for i in range(8):
-            for j in range(8):
-                for k in range(8):
-                    buf[i + 1, j + 1, k + 1] = vals[r, i, j, k]
-                    abuf[i + 1, j + 1, k + 1] = act[r, i, j, k]
-    for f in range(6):
-        n = nbr[b, f]
-        r = n if same or n < 0 else rows[n]
-        if r < 0:
-            continue
-        for u in range(8):
-            for v in range(8):
-                if f == 0:
-                    buf[0, u + 1, v + 1], abuf[0, u + 1, v + 1] = vals[r, 7, u, v], act[r, 7, u, v]
-                elif f == 1:
-                    buf[9, u + 1, v + 1], abuf[9, u + 1, v + 1] = vals[r, 0, u, v], act[r, 0, u, v]
-                elif f == 2:
-                    buf[u + 1, 0, v + 1], abuf[u + 1, 0, v + 1] = vals[r, u, 7, v], act[r, u, 7, v]
-                elif f == 3:
-                    buf[u + 1, 9, v + 1], abuf[u + 1, 9, v + 1] = vals[r, u, 0, v], act[r, u, 0, v]
-                elif f == 4:
-                    buf[u + 1, v + 1, 0], abuf[u + 1, v + 1, 0] = vals[r, u, v, 7], act[r, u, v, 7]
-                else:
-                    buf[u + 1, v + 1, 9], abuf[u + 1, v + 1, 9] = vals[r, u, v, 0], act[r, u, v, 0]
+    abuf[:] = False
+    load_ghosts(vals, act, rows, nbr, FACES6, b, 1, 0.0, buf, abuf)

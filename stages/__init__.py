@@ -1,7 +1,7 @@
 """Pipeline stages: one small module per stage mapping config parameters onto library calls.
 
 Each module follows the stage protocol of :mod:`stages.base`: ``Params``, ``REQUIRES``,
-``grids(params)``, ``estimate_bytes(job, params, band_bytes)`` and ``run(ctx, params)``.
+``PRODUCES``, ``grids(params)``, ``estimate_bytes(job, params, band)`` and ``run(ctx, params)``.
 """
 
 from stages import components, export, hfrep, voxelise

@@ -3,12 +3,16 @@
 A stage is a module of this package with:
 
 * ``Params`` -- a :class:`StageParams` model (unknown keys forbidden), validated by the loader;
-* ``REQUIRES`` -- names of stages that must run before it (optional);
+* ``REQUIRES`` / ``PRODUCES`` -- the types of the results (below) it reads from the context
+  and puts on it (optional); the loader checks that a stage before it produces each it requires;
 * ``grids(params) -> list[str]`` -- the grids it adds, in the order they are written (the
   loader checks ``export.grids`` against them; the runner orders the context's grids by them);
-* ``estimate_bytes(job, params, band_bytes) -> (bytes, what)`` -- its peak memory, given the
-  bytes of the narrow band every stage holds, checked before the job starts (exit 2 with the
-  estimate when it will not fit);
+* ``estimate_bytes(job, params, band: BandEstimate) -> (bytes, what)`` -- its peak memory, given
+  the narrow band every stage holds, checked before the job starts (exit 2 with the estimate
+  when it will not fit);
+* a stage that produces the :class:`FrepBand` also estimates it: ``estimate_band(job, params)
+  -> BandEstimate``, after ``enumeration_bytes(job, params) -> (bytes, what)``, the memory of
+  the estimate itself (checked first: the estimate enumerates the domain's top-level cells);
 * ``run(ctx, params) -> dict`` -- the work; the dict goes into the manifest as the stage's stats.
 
 Results other stages read go on the context by type (``ctx.put(FrepBand(...))``,
@@ -47,6 +51,15 @@ class FrepBand:
     signed: bool
 
 
-def band_only(job, params, band_bytes: float) -> tuple[float, str]:
+@dataclass(frozen=True)
+class BandEstimate:
+    """The :class:`FrepBand` a job will hold, estimated before it runs: ``bytes`` of its grids,
+    its half-width ``voxels`` (the producing stage's ``band``)."""
+
+    bytes: float
+    voxels: float
+
+
+def band_only(job, params, band: BandEstimate) -> tuple[float, str]:
     """``estimate_bytes`` of a stage that holds no more than the band grids."""
-    return band_bytes, "its narrow band"
+    return band.bytes, "its narrow band"

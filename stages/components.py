@@ -27,7 +27,8 @@ from pipeline.topology import components as cc
 from pipeline.util.atomic import atomic_path
 from stages.base import FrepBand, StageParams, band_only
 
-REQUIRES = ("voxelise",)
+REQUIRES = (FrepBand,)
+PRODUCES = (FrepBand,)  # the band without the pieces ``keep`` drops
 
 
 class MinVolume(StageParams):

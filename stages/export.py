@@ -14,9 +14,9 @@ from pydantic import Field
 from pipeline.io.meshout import export_meshes
 from pipeline.io.report import write_report
 from pipeline.io.vdbio import write_vdb
-from stages.base import StageParams, band_only
+from stages.base import FrepBand, StageParams, band_only
 
-REQUIRES = ("voxelise",)
+REQUIRES = (FrepBand,)
 VTKKind = Literal["vti", "vtp", "vtu", "ply", "obj"]
 
 

@@ -21,9 +21,9 @@ from pipeline.distance.hfrep import density_grid, hfrep_blocks, hfrep_grid
 from pipeline.distance.quality import field_report
 from pipeline.util.errors import InputError
 from pipeline.voxel.voxelise import LEAF_PEAK_BYTES, WORK_BYTES, estimate_interior_voxels
-from stages.base import FrepBand, StageParams
+from stages.base import BandEstimate, FrepBand, StageParams
 
-REQUIRES = ("voxelise",)
+REQUIRES = (FrepBand,)
 RESERVED = ("frep", "surface", "hfrep", "density", "component")
 AttrFormula = Annotated[str, AfterValidator(check_formula)]
 
@@ -140,16 +140,15 @@ SHELL_BYTES_PER_VOXEL = 10
 SHELL_BLOCKS_PER_LEAF = 5  # fine blocks of a coarse-interior hfrep solve per band leaf (4.4 measured, demo 512^3)
 
 
-def estimate_bytes(job, p: Params, band_bytes: float) -> tuple[float, str]:
+def estimate_bytes(job, p: Params, band: BandEstimate) -> tuple[float, str]:
     """The band plus the voxels solved at full resolution: the whole interior, or with the
     coarse interior (:func:`_inside_distance`) a shell of blocks around the band."""
     fine = _solves_interior(p)
     if fine:
-        band_vox = next(q.band for n, q in job.stages if n == "voxelise")  # REQUIRES voxelise
-        voxels = estimate_interior_voxels(job.model, job.domain, band_vox, job.t)
+        voxels = estimate_interior_voxels(job.model, job.domain, band.voxels, job.t)
     else:
-        voxels = SHELL_BLOCKS_PER_LEAF * max(band_bytes - WORK_BYTES, 0.0) / LEAF_PEAK_BYTES * 512.0
-    need = band_bytes + (HFREP_BYTES_PER_VOXEL if fine else SHELL_BYTES_PER_VOXEL) * voxels
+        voxels = SHELL_BLOCKS_PER_LEAF * max(band.bytes - WORK_BYTES, 0.0) / LEAF_PEAK_BYTES * 512.0
+    need = band.bytes + (HFREP_BYTES_PER_VOXEL if fine else SHELL_BYTES_PER_VOXEL) * voxels
     what = "interior distance" if fine else "distance near the surface"
     return need, f"its narrow band and the {what} of the hfrep stage"
 

@@ -9,11 +9,23 @@ from __future__ import annotations
 
 from typing import Literal
 
+import numpy as np
 from pydantic import Field
 
 from pipeline.sparse.grid import frep_to_vdb
-from pipeline.voxel.voxelise import assemble, bricks_for, merge_samples, root_size_for, sample_blocks, voxelise
-from stages.base import FrepBand, StageParams, band_only
+from pipeline.voxel.voxelise import (
+    assemble,
+    bricks_for,
+    estimate_band_bytes,
+    merge_samples,
+    root_size_for,
+    sample_blocks,
+    voxelise,
+)
+from stages.base import BandEstimate, FrepBand, StageParams, band_only
+
+PRODUCES = (FrepBand,)
+ROOT_CELL_BYTES = 160  # per top-level cell of the enumeration: its index arrays, boxes and bounds
 
 
 class Params(StageParams):
@@ -43,7 +55,18 @@ def grids(p: Params) -> list[str]:
     return ["frep"]
 
 
-estimate_bytes = band_only  # the loader's band estimate is this stage's own peak
+estimate_bytes = band_only  # the band estimate is this stage's own peak
+
+
+def enumeration_bytes(job, p: Params) -> tuple[float, str]:
+    """Memory of the top-level cells every voxelisation (and :func:`estimate_band`) enumerates,
+    counted in floats (a huge domain must not overflow an integer)."""
+    roots = float(np.prod(np.ceil(job.domain.dims / root_size_for(job.domain.dims, p.block)) + 1))
+    return roots * ROOT_CELL_BYTES, f"the {roots:.3g} top-level cells of voxelise"
+
+
+def estimate_band(job, p: Params) -> BandEstimate:
+    return BandEstimate(estimate_band_bytes(job.model, job.domain, p.band, job.t), float(p.band))
 
 
 def sample_brick(job, task):

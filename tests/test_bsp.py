@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import trimesh
@@ -10,8 +12,9 @@ from hypothesis import strategies as st
 from matplotlib.path import Path as MplPath
 
 from pipeline.field import rfunctions as rf
+from pipeline.field import rkernels as rk
 from pipeline.mesh.adf import ADFField
-from pipeline.mesh.bsp import FAMILY_CODE, SPECIAL_B, SPECIAL_C, BSPField, merge_coplanar, nb_and, nb_or
+from pipeline.mesh.bsp import FAMILY_CODE, SPECIAL_B, SPECIAL_C, BSPField, merge_coplanar
 
 FAMILIES = ("min_max", "r0", "sardf")
 
@@ -79,14 +82,37 @@ def _dist_to_segments_2d(loops: list[np.ndarray], p: np.ndarray) -> np.ndarray:
 finite = st.floats(-1e3, 1e3, allow_nan=False)
 
 
+def _reference_and(f1: float, f2: float, family: str, scale: float) -> float:
+    """The conjunctions as the papers write them (bsp-fields eq. 1 and 2; the SARDF window of
+    pipeline.field.rfunctions), in plain Python, then the magnitude control."""
+    if family == "min_max":
+        return min(f1, f2)
+    rho = math.hypot(f1, f2)
+    if family == "r0":
+        r = f1 + f2 - rho
+    else:
+        w = rf.SARDF_K * rho
+        u = f1 - f2
+        r = min(f1, f2) if abs(u) >= w else 0.5 * (f1 + f2 - (u * u + w * w) / (2 * w))
+    if abs(r) <= scale:
+        return r
+    return math.copysign(scale * (1 + math.log(abs(r) / scale)), r)
+
+
 @settings(max_examples=300, deadline=None)
 @given(finite, finite, st.sampled_from(FAMILIES), st.sampled_from([np.inf, 1.0, 50.0]))
-def test_numba_rfunctions_match_reference(f1: float, f2: float, family: str, scale: float) -> None:
+def test_rfunctions_match_the_papers_formulas(f1: float, f2: float, family: str, scale: float) -> None:
+    """The compiled scalars (rkernels, which the tape and the BSP-field inline) and the NumPy
+    ufuncs made from them (rfunctions) equal the formulas as written (r0 computed naively here:
+    its cancellation costs up to (|f1| + |f2|) float64 units)."""
     code = FAMILY_CODE[family]
-    ref_and = float(rf.r_and(np.array(f1), np.array(f2), family, scale=scale))
-    ref_or = float(rf.r_or(np.array(f1), np.array(f2), family, scale=scale))
-    assert nb_and(f1, f2, code, rf.SARDF_K, scale) == pytest.approx(ref_and, abs=1e-12, rel=1e-12)
-    assert nb_or(f1, f2, code, rf.SARDF_K, scale) == pytest.approx(ref_or, abs=1e-12, rel=1e-12)
+    tol = 1e-12 * (abs(f1) + abs(f2)) + 1e-300
+    want_and = _reference_and(f1, f2, family, scale)
+    want_or = -_reference_and(-f1, -f2, family, scale)
+    assert rk.r_and(f1, f2, code, rf.SARDF_K, scale) == pytest.approx(want_and, abs=tol, rel=1e-12)
+    assert rk.r_or(f1, f2, code, rf.SARDF_K, scale) == pytest.approx(want_or, abs=tol, rel=1e-12)
+    assert float(rf.r_and(np.array(f1), np.array(f2), family, scale=scale)) == rk.r_and(f1, f2, code, rf.SARDF_K, scale)
+    assert float(rf.r_or(np.array(f1), np.array(f2), family, scale=scale)) == rk.r_or(f1, f2, code, rf.SARDF_K, scale)
 
 
 @pytest.mark.parametrize("family", FAMILIES)

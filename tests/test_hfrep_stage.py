@@ -316,6 +316,37 @@ stages:
     assert "bad.yaml:4 model.hfrep: the child has no surface inside the hfrep bounds" in err
     err = _fails(tmp_path, capsys, text.replace("resolution: 16\nstages", "resolution: 16\n    voxel_size: 0.1\nstages"))
     assert "model.hfrep: give at most one of resolution or voxel_size" in err
+    under_jobs = "jobs:\n  - " + "\n    ".join(text.splitlines()) + "\n"
+    err = _fails(tmp_path, capsys, under_jobs)
+    assert "bad.yaml:5 jobs[0].model.hfrep: the child has no surface inside the hfrep bounds" in err, err
+
+
+def test_validate_does_not_solve_an_hfrep_node(tmp_path, monkeypatch, capsys) -> None:
+    """Building the model (``frepvdb validate``, the loader) does not voxelise or solve the
+    child of an ``hfrep`` node; the first stage that evaluates it does."""
+    import pipeline.oracles.hfrepnode as hn
+
+    calls = []
+    real = hn.solve_distance
+    monkeypatch.setattr(hn, "solve_distance", lambda *a, **k: calls.append(1) or real(*a, **k))
+    cfg = tmp_path / "ok.yaml"
+    cfg.write_text(HFREP_NODE_JOB)
+    assert main(["validate", str(cfg)]) == 0
+    assert calls == []
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+    assert calls == [1]
+
+
+HFREP_NODE_JOB = """\
+name: lazy
+domain: {bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 24}
+model:
+  offset:
+    of: {hfrep: {of: {box: {min: [-0.5, -0.5, -0.5], max: [0.5, 0.5, 0.5]}}}}
+    distance: 0.1
+stages:
+  - voxelise: {band: 2}
+"""
 
 
 def test_coarse_interior_matches_the_fine_solve(tmp_path) -> None:

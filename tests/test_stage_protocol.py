@@ -9,7 +9,7 @@ import json
 from pipeline.cli import main
 from pipeline.sparse.grid import vdb
 from stages import REGISTRY
-from stages.base import StageParams
+from stages.base import FrepBand, StageParams
 
 
 def test_every_stage_follows_the_protocol() -> None:
@@ -18,7 +18,10 @@ def test_every_stage_follows_the_protocol() -> None:
         assert list(inspect.signature(stage.run).parameters) == ["ctx", "p"], name
         assert len(inspect.signature(stage.grids).parameters) == 1, name
         assert len(inspect.signature(stage.estimate_bytes).parameters) == 3, name
-        assert all(r in REGISTRY for r in getattr(stage, "REQUIRES", ())), name
+        made = set().union(*(getattr(s, "PRODUCES", ()) for s in REGISTRY.values()))
+        assert set(getattr(stage, "REQUIRES", ())) <= made, name
+        if FrepBand in getattr(stage, "PRODUCES", ()):
+            assert callable(stage.estimate_band) and callable(stage.enumeration_bytes), name
 
 
 JOB = """\

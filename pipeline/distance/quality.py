@@ -28,12 +28,12 @@ from pipeline.sparse.access import FACES6, block_neighbours, load_ghosts, load_p
 from pipeline.sparse.grid import BlockGrid
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def _central_gradient(vals, act, nbr, h, grad, ok):
     """Central-difference gradient (world units) where the voxel and its 6 neighbours are active."""
-    for b in numba.prange(vals.shape[0]):
-        buf = np.empty((10, 10, 10))
-        abuf = np.empty((10, 10, 10), dtype=np.bool_)
+    buf = np.empty((10, 10, 10))
+    abuf = np.empty((10, 10, 10), dtype=np.bool_)
+    for b in range(vals.shape[0]):
         load_padded(vals, act, nbr, b, buf, abuf)
         for i in range(8):
             for j in range(8):
@@ -41,7 +41,9 @@ def _central_gradient(vals, act, nbr, h, grad, ok):
                     gx, gy, gz, good = central_gradient_at(buf, abuf, i + 1, j + 1, k + 1)
                     ok[b, i, j, k] = good
                     if good:
-                        grad[b, i, j, k, 0], grad[b, i, j, k, 1], grad[b, i, j, k, 2] = gx / h, gy / h, gz / h
+                        grad[b, i, j, k, 0] = gx / h
+                        grad[b, i, j, k, 1] = gy / h
+                        grad[b, i, j, k, 2] = gz / h
 
 
 HIST_MAX, HIST_BINS = 4.0, 40_000  # |grad| histogram: 1e-4 resolution for the percentiles

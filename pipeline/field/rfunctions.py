@@ -24,62 +24,57 @@ R-function with the same sign and zero set, every value within c of zero is exac
 no value can grow beyond a few c (the fixed point of c (1 + ln((2 + sqrt 2) f / c)) is
 about 3.5 c). ``scale = inf`` (the default for direct calls) turns it off.
 
-Every function here has an affine-arithmetic twin in :mod:`pipeline.model.ops`, which dispatches on
-the argument type; model nodes call the ``ops`` versions so that evaluation and bounding share
-one formula.
+The formulas are written once, as compiled scalar functions in :mod:`pipeline.field.rkernels`
+(which the tape's kernels and the BSP-field inline); the array functions here are NumPy ufuncs
+made from them. Their enclosures over boxes (affine arithmetic) are in :mod:`pipeline.model.ops`,
+which dispatches on the argument type; model nodes call the ``ops`` versions.
 """
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
+from numba import vectorize
+
+from pipeline.field import rkernels as rk
 
 FAMILIES = ("min_max", "r0", "sardf")
 SARDF_K = 0.5  # half-width of the smoothing window (|f1-f2| < k*rho); must be < 1 to stay an R-function
 
 
-def _smooth_abs(u: np.ndarray, rho: np.ndarray, k: float) -> np.ndarray:
-    """|u| outside the window |u| < k*rho, the C1 quadratic (u^2 + (k rho)^2)/(2 k rho) inside it."""
-    w = k * rho
-    with np.errstate(divide="ignore", invalid="ignore"):
-        quad = (u * u + w * w) / (2.0 * w)
-    return np.where(np.abs(u) < w, quad, np.abs(u))
+@functools.cache
+def _ufuncs() -> dict:
+    """The R-conjunctions of rkernels and the compression as float64 ufuncs (compiled on first
+    use, cached on disk: importing this module costs nothing)."""
+    sig = ["float64(float64, float64, float64)"]
+    return {
+        "r0": vectorize(sig, cache=True)(lambda f1, f2, cc: rk.compress(rk.r0_and(f1, f2), cc)),
+        "sardf": vectorize(["float64(float64, float64, float64, float64)"], cache=True)(
+            lambda f1, f2, k, cc: rk.compress(rk.sardf_and(f1, f2, k), cc)),
+        "compress": vectorize(["float64(float64, float64)"], cache=True)(lambda f, cc: rk.compress(f, cc)),
+    }
 
 
 def compress(f: np.ndarray, scale: float) -> np.ndarray:
     """The identity for |f| <= scale, sign(f) scale (1 + ln(|f| / scale)) beyond (C1, increasing)."""
     if not np.isfinite(scale):
         return f
-    a = np.abs(f)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        far = np.copysign(scale * (1.0 + np.log(a / scale)), f)
-    return np.where(a > scale, far, f)
+    return _ufuncs()["compress"](f, scale)
 
 
 def r_and(f1: np.ndarray, f2: np.ndarray, family: str = "r0", k: float = SARDF_K,
           scale: float = np.inf) -> np.ndarray:
-    """R-conjunction (intersection) of two fields; ``scale``: see :func:`compress`."""
+    """R-conjunction (intersection) of two fields (float64); ``scale``: see :func:`compress`.
+    r0 is written without cancellation (the conjugate form 2 f1 f2 / (f1 + f2 + rho) where
+    f1 + f2 > 0: the naive form loses the sign when the arguments differ by many orders of
+    magnitude, as deep BSP trees produce); sardf is min itself outside its window."""
     if family == "min_max":
         return np.minimum(f1, f2)
-    return compress(_r_and_raw(f1, f2, family, k), scale)
-
-
-def _r_and_raw(f1: np.ndarray, f2: np.ndarray, family: str, k: float) -> np.ndarray:
     if family == "r0":
-        # f1 + f2 - sqrt(f1^2 + f2^2), written without cancellation: where f1 + f2 > 0 use the
-        # conjugate form 2 f1 f2 / (f1 + f2 + rho) (the naive form loses the sign when the
-        # arguments differ by many orders of magnitude, as deep BSP trees produce)
-        s = f1 + f2
-        rho = np.hypot(f1, f2)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(s > 0, 2.0 * f1 * f2 / (s + rho), s - rho)
+        return _ufuncs()["r0"](f1, f2, scale)
     if family == "sardf":
-        rho = np.hypot(f1, f2)
-        u = f1 - f2
-        inner = np.abs(u) < k * rho
-        with np.errstate(divide="ignore", invalid="ignore"):
-            smooth = 0.5 * (f1 + f2 - _smooth_abs(u, rho, k))
-        # outside the window the value is min itself: return it exactly (no cancellation)
-        return np.where(inner, smooth, np.minimum(f1, f2))
+        return _ufuncs()["sardf"](f1, f2, k, scale)
     raise ValueError(f"unknown R-function family {family!r}")
 
 

@@ -38,11 +38,8 @@ from pipeline.model.expr import FormulaError
 from pipeline.oracles import REGISTRY, Node
 from pipeline.util.atomic import atomic_path
 from pipeline.util.errors import ConfigError, InputError, format_path
-from pipeline.voxel.voxelise import (
-    estimate_band_bytes,
-    root_size_for,
-)
 from stages import REGISTRY as STAGES
+from stages.base import FrepBand
 
 MAX_INDEX = 2**30  # OpenVDB index coordinates are 32-bit; keep a safety margin
 
@@ -287,6 +284,12 @@ def stage_path(job: Job, params: Any) -> tuple:
     entry = raw["jobs"][job.index[0]] if raw.get("jobs") and job.index else None
     base = ("jobs", job.index[0], "stages") if isinstance(entry, dict) and "stages" in entry else ("stages",)
     return base + (i, name)
+
+
+def input_error_path(job: Job, params: Any, e: InputError) -> tuple:
+    """YAML path of an InputError raised while a stage ran: relative to the model node that
+    raised it (a node that solves lazily, e.g. ``hfrep``), else to the stage's parameters."""
+    return (tuple(_parse_path(e.node)) if e.node else stage_path(job, params)) + e.path
 
 
 def line_of(root: Any, path: tuple) -> int | None:
@@ -915,14 +918,20 @@ def _stages(raw: list, ctx: _Ctx, base: tuple = ("stages",)) -> list[tuple[str, 
         if bad:
             raise bad
         out.append((name, params))
-    names = [n for n, _ in out]
-    for i, n in enumerate(names):
-        needs = getattr(STAGES[n], "REQUIRES", ())
-        missing = [r for r in needs if r not in names[:i]]
+    made: set[type] = set()
+    for i, (n, _) in enumerate(out):
+        missing = [r for r in getattr(STAGES[n], "REQUIRES", ()) if r not in made]
         if missing:
-            raise ctx.fail(base + (i, n), f"needs the {', '.join(missing)} stage before it")
+            raise ctx.fail(base + (i, n), f"needs the {', '.join(_producers(missing))} stage before it")
+        made.update(getattr(STAGES[n], "PRODUCES", ()))
     _check_grid_names(out, ctx, base)
     return out
+
+
+def _producers(kinds: list[type]) -> list[str]:
+    """The stages that make results of these types without needing them first (voxelise)."""
+    return [n for n, st in STAGES.items() for k in kinds
+            if k in getattr(st, "PRODUCES", ()) and k not in getattr(st, "REQUIRES", ())]
 
 
 def _check_grid_names(stages: list[tuple[str, Any]], ctx: _Ctx, base: tuple) -> None:
@@ -963,7 +972,11 @@ def _to_plain(x: Any) -> Any:
 
 def _check_model_values(job: Job, ctx: _Ctx) -> None:
     """Evaluate the model on a coarse lattice of the domain; NaN or inf is a config error that
-    names the deepest node where it first appears (e.g. a formula dividing by zero)."""
+    names the deepest node where it first appears (e.g. a formula dividing by zero). Not for a
+    tree with a node that solves on first use (``hfrep``): validating must not run its solve;
+    the stages find such values as they evaluate (NonFiniteField, located the same way)."""
+    if any(node.solves_on_first_use for node in job.model.walk()):
+        return
     err = locate_nonfinite(job, _check_points(job.domain.bounds))
     if err is not None:
         raise err
@@ -1008,32 +1021,28 @@ def _parse_path(s: str) -> list:
     return out
 
 
-ROOT_CELL_BYTES = 160  # per top-level cell of the enumeration: its index arrays, boxes and bounds
-
-
 def _check_memory(job: Job, ctx: _Ctx, base: tuple = ()) -> None:
     """Refuse a domain whose grids would not fit in this machine's memory (estimates): the
-    top-level cells every voxelisation enumerates, then each stage's own estimate from the
-    narrow band every stage holds (``estimate_bytes``, stages.base; kept in ``job.memory_estimate``,
-    which the runner writes into the manifest); the largest stage must fit."""
-
-    voxelise = next((p for n, p in job.stages if n == "voxelise"), None)
-    if voxelise is None or job.domain.dims.max() < 512:
+    stage that makes the narrow band estimates it (after the memory of the estimate itself),
+    then every stage estimates its own peak from it (``estimate_bytes``, stages.base; kept in
+    ``job.memory_estimate``, which the runner writes into the manifest); the largest must fit."""
+    maker = next(((n, p) for n, p in job.stages if FrepBand in getattr(STAGES[n], "PRODUCES", ())), None)
+    if maker is None or job.domain.dims.max() < 512:
         return  # small domains always fit: 512^3 voxels of band would be ~3 GiB
     avail = _available_memory()
-    # the estimates below enumerate these cells themselves: check their count first, in floats
-    roots = float(np.prod(np.ceil(job.domain.dims / root_size_for(job.domain.dims, voxelise.block)) + 1))
-    if roots * ROOT_CELL_BYTES > avail:
-        _refuse_memory(job, ctx, base, roots * ROOT_CELL_BYTES, f"the {roots:.3g} top-level cells of voxelise", avail)
-    band = estimate_band_bytes(job.model, job.domain, voxelise.band, job.t)
+    stage, params = STAGES[maker[0]], maker[1]
+    need, what = stage.enumeration_bytes(job, params)
+    if need > avail:
+        _refuse_memory(job, ctx, base, need, what, avail)
+    band = stage.estimate_band(job, params)
     est: dict[str, tuple[float, str]] = {}
-    for name, params in job.stages:  # every stage holds the band grids, some more (stages.base)
-        need = STAGES[name].estimate_bytes(job, params, band)
+    for name, p in job.stages:  # every stage holds the band grids, some more (stages.base)
+        need = STAGES[name].estimate_bytes(job, p, band)
         est[name] = max(est.get(name, need), need, key=lambda x: x[0])
     job.memory_estimate = {n: int(v) for n, (v, _) in est.items()}
-    stage = max(est, key=lambda n: est[n][0])
-    if est[stage][0] > avail:
-        _refuse_memory(job, ctx, base, est[stage][0], est[stage][1], avail)
+    top = max(est, key=lambda n: est[n][0])
+    if est[top][0] > avail:
+        _refuse_memory(job, ctx, base, est[top][0], est[top][1], avail)
 
 
 def _refuse_memory(job: Job, ctx: _Ctx, base: tuple, need: float, what: str, avail: float) -> None:

@@ -12,7 +12,7 @@ import shutil
 import time
 from pathlib import Path
 
-from pipeline.job.config import Job, line_of, locate_nonfinite, stage_path
+from pipeline.job.config import Job, input_error_path, line_of, locate_nonfinite
 from pipeline.job.context import JobContext
 from pipeline.job.outputs import (
     JobBusy,
@@ -106,7 +106,7 @@ def _run_stage(ctx: JobContext, name: str, params) -> dict:
         err = locate_nonfinite(ctx.job, e.point)
         raise err or ConfigError.one(ctx.job.config_path, None, ("model",), str(e)) from None
     except InputError as e:
-        path = stage_path(ctx.job, params) + e.path
+        path = input_error_path(ctx.job, params, e)
         raise ConfigError.one(ctx.job.config_path, line_of(ctx.job.raw, path), path, str(e)) from None
     for grid in stage.grids(params):  # the grids a stage adds go in the order it declares
         if grid in ctx.grids:

@@ -45,6 +45,7 @@ from numba import njit, prange
 from scipy.optimize import linprog
 
 from pipeline.field.rfunctions import FAMILIES, SARDF_K
+from pipeline.field.rkernels import r_and, r_or
 from pipeline.field.small_lp import max_margin
 from pipeline.mesh import bsp_minmax
 from pipeline.mesh.bsp_build import BIG_NODE, plane_ids, subtree_sizes
@@ -64,41 +65,7 @@ R0_SCALE = 2.0  # magnitude control of r0/sardf, in mesh diagonals (see BSPField
 MODE_OPS = np.array([0, 1, 1, 4, 2, 2])  # binary R-functions per node mode
 
 
-# --------------------------------------------------------------------------- R-function twins
-
-
-@njit(cache=True)
-def nb_compress(f: float, c: float) -> float:
-    """Twin of :func:`pipeline.field.rfunctions.compress`: identity for |f| <= c, log growth beyond."""
-    a = abs(f)
-    if a <= c:
-        return f
-    r = c * (1.0 + np.log(a / c))
-    return r if f > 0 else -r
-
-
-@njit(cache=True)
-def nb_and(f1: float, f2: float, fam: int, k: float, c: float) -> float:
-    """R-conjunction; Numba twin of :func:`pipeline.field.rfunctions.r_and` (eq. 1, eq. 2, SARDF),
-    with the magnitude control ``c`` of r0 and sardf."""
-    if fam == 0:
-        return min(f1, f2)
-    if fam == 1:  # cancellation-free form, see pipeline.field.rfunctions.r_and
-        s = f1 + f2
-        rho = np.hypot(f1, f2)
-        return nb_compress(2.0 * f1 * f2 / (s + rho) if s > 0 else s - rho, c)
-    rho = np.hypot(f1, f2)
-    u = f1 - f2
-    w = k * rho
-    if abs(u) >= w:  # min itself, compressed like the window so that the result stays C1
-        return nb_compress(min(f1, f2), c)
-    return nb_compress(0.5 * (f1 + f2 - (u * u + w * w) / (2.0 * w)), c)
-
-
-@njit(cache=True)
-def nb_or(f1: float, f2: float, fam: int, k: float, c: float) -> float:
-    """R-disjunction -(-f1 AND -f2); twin of :func:`pipeline.field.rfunctions.r_or`."""
-    return -nb_and(-f1, -f2, fam, k, c)
+# R-functions: pipeline.field.rkernels (r_and / r_or with the family codes of FAMILY_CODE)
 
 
 @njit(cache=True)
@@ -107,14 +74,14 @@ def _node_value(mode: int, fa: float, fb: float, fc: float, fam: int, k: float, 
     if mode == 0:
         return fa
     if mode == 1:
-        return nb_and(fa, fb, fam, k, c)
+        return r_and(fa, fb, fam, k, c)
     if mode == 2:
-        return nb_or(fa, fc, fam, k, c)
+        return r_or(fa, fc, fam, k, c)
     if mode == 3:
-        return nb_or(nb_and(nb_or(fa, fc, fam, k, c), fb, fam, k, c), nb_and(-fa, fc, fam, k, c), fam, k, c)
+        return r_or(r_and(r_or(fa, fc, fam, k, c), fb, fam, k, c), r_and(-fa, fc, fam, k, c), fam, k, c)
     if mode == 4:
-        return nb_and(nb_or(fa, fc, fam, k, c), fb, fam, k, c)
-    return nb_and(nb_or(-fa, fb, fam, k, c), fc, fam, k, c)
+        return r_and(r_or(fa, fc, fam, k, c), fb, fam, k, c)
+    return r_and(r_or(-fa, fb, fam, k, c), fc, fam, k, c)
 
 
 # --------------------------------------------------------------------------- compiled kernels
@@ -155,11 +122,11 @@ def _box_node(mode, alo, ahi, blo, bhi, clo, chi, fam, k, c):
     lo = _node_value(mode, alo, blo, clo, fam, k, c)
     hi = _node_value(mode, ahi, bhi, chi, fam, k, c)
     if mode == 3:  # -fa occurs too: (fa v fc) ^ fb with fa, and (-fa ^ fc) with -fa
-        lo = nb_or(nb_and(nb_or(alo, clo, fam, k, c), blo, fam, k, c), nb_and(-ahi, clo, fam, k, c), fam, k, c)
-        hi = nb_or(nb_and(nb_or(ahi, chi, fam, k, c), bhi, fam, k, c), nb_and(-alo, chi, fam, k, c), fam, k, c)
+        lo = r_or(r_and(r_or(alo, clo, fam, k, c), blo, fam, k, c), r_and(-ahi, clo, fam, k, c), fam, k, c)
+        hi = r_or(r_and(r_or(ahi, chi, fam, k, c), bhi, fam, k, c), r_and(-alo, chi, fam, k, c), fam, k, c)
     elif mode == 5:
-        lo = nb_and(nb_or(-ahi, blo, fam, k, c), clo, fam, k, c)
-        hi = nb_and(nb_or(-alo, bhi, fam, k, c), chi, fam, k, c)
+        lo = r_and(r_or(-ahi, blo, fam, k, c), clo, fam, k, c)
+        hi = r_and(r_or(-alo, bhi, fam, k, c), chi, fam, k, c)
     return lo, hi
 
 

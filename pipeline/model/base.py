@@ -66,6 +66,9 @@ class Node(ABC):
     child_fields: ClassVar[tuple[str, ...]] = ()
     #: the bare YAML form: a list is shorthand for {<list_field>: [...]}
     list_field: ClassVar[str | None] = None
+    #: the node does expensive work (a solve) when first evaluated: loading a config does not
+    #: evaluate a tree that holds one (its values are checked as the stages evaluate it)
+    solves_on_first_use: ClassVar[bool] = False
 
     def __init__(self, params: Params, where: str = ""):
         self.params = params

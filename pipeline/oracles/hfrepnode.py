@@ -26,7 +26,8 @@ components stage stays sound):
 - the two intervals are multiplied with interval arithmetic and widened outwards by a
   rounding allowance; the result is returned as an affine form without noise symbols.
 
-The distance is solved once, when the node is built, for the child at the job's ``t``.
+The distance is solved once, when the node is first evaluated or bounded (not when it is built:
+validating a config does not solve), for the child at the job's ``t``.
 ``bounds`` and the voxel size default to the job's domain (the config loader passes it:
 ``uses_domain``); beyond ``bounds`` (or beyond ``max_distance`` outside) the distance is the
 clamp value, so keep offsets smaller than ``max_distance`` and the surface at least 4 voxels
@@ -35,6 +36,7 @@ inside ``bounds``.
 
 from __future__ import annotations
 
+import functools
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -77,6 +79,7 @@ class HFRepNode(Node):
 
     child_fields = ("of",)
     uses_domain: ClassVar[bool] = True  # pipeline.job.config.build_node passes domain= and t=
+    solves_on_first_use: ClassVar[bool] = True  # the loader does not evaluate it (Node)
 
     def __init__(self, params, where: str = "", domain: Any = None, t: float = 0.0):
         super().__init__(params, where)
@@ -98,16 +101,41 @@ class HFRepNode(Node):
         if np.any(imax - imin + 1 > 2048):
             raise InputError(f"voxel_size {h:g} gives {(imax - imin + 1).tolist()} voxels: at most 2048 per axis")
         self.t = float(t)
-        child = p.of
-        vox = voxelise(child, imin, imax, h, p.band, 4, self.t)
-        if vox.blocks.active_count == 0 or not _has_sign_change(vox.blocks):
-            raise InputError("the child has no surface inside the hfrep bounds")
-        self.result = solve_distance(vox.blocks, p.max_distance, (imin, imax), vox.inside_boxes, order=p.order)
-        self.hf = HFRepField(lambda q: child.evaluate(q, self.t), _spline(self.result), p.step, p.slope)
-        sp = self.hf.distance
         self.voxel_size = h
-        self._bmin, self._bmax = _block_ranges(sp.coefficients)
-        self.stats = {**vox.stats, **self.result.stats}
+        self._index_box = (imin, imax)
+
+    # --- the solve, on first use ------------------------------------------------------------
+    # Not in __init__: building the model (``frepvdb validate``, the config loader) must not
+    # voxelise and solve. Its problems are then found by the first stage that evaluates the
+    # node, and located at the node (InputError ``node=``).
+    @functools.cached_property
+    def _solved(self) -> tuple:
+        p = self.params
+        imin, imax = self._index_box
+        vox = voxelise(p.of, imin, imax, self.voxel_size, p.band, 4, self.t)
+        if vox.blocks.active_count == 0 or not _has_sign_change(vox.blocks):
+            raise InputError("the child has no surface inside the hfrep bounds", node=self.where or None)
+        result = solve_distance(vox.blocks, p.max_distance, (imin, imax), vox.inside_boxes, order=p.order)
+        hf = HFRepField(lambda q: p.of.evaluate(q, self.t), _spline(result), p.step, p.slope)
+        return result, hf, _block_ranges(hf.distance.coefficients), {**vox.stats, **result.stats}
+
+    def __getstate__(self) -> dict:
+        state = super().__getstate__()
+        state.pop("_solved", None)  # a worker solves its own copy (the field holds a closure)
+        return state
+
+    @property
+    def result(self):
+        """The eikonal solve of the child's distance (:func:`pipeline.distance.eikonal.solve_distance`)."""
+        return self._solved[0]
+
+    @property
+    def hf(self) -> HFRepField:
+        return self._solved[1]
+
+    @property
+    def stats(self) -> dict:
+        return self._solved[3]
 
     def field(self, x, y, z, t):
         if any(isinstance(v, AffineForm) for v in (x, y, z)):
@@ -135,7 +163,8 @@ class HFRepNode(Node):
         ihi = np.clip(b, lat_lo - 1, lat_hi + 1).astype(np.int64)
         n = len(lo)
         smin, smax, complete = np.empty(n), np.empty(n), np.empty(n, dtype=np.bool_)
-        _coef_range(sp.coefficients, self._bmin, self._bmax, sp.lattice, sp.lattice_lo, ilo, ihi, smin, smax, complete)
+        bmin, bmax = self._solved[2]
+        _coef_range(sp.coefficients, bmin, bmax, sp.lattice, sp.lattice_lo, ilo, ihi, smin, smax, complete)
         fill = sp.fill
         smin = np.where(complete & ~bad, smin, np.minimum(smin, fill))
         smax = np.where(complete & ~bad, smax, np.maximum(smax, fill))

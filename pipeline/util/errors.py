@@ -52,13 +52,15 @@ class ConfigError(Exception):
 
 class InputError(ValueError):
     """A problem with an input named by the config (a mesh, a .vdb, a formula) found while building
-    the model or running a stage. ``path`` is the YAML path relative to where it was found (a
-    node, a stage's parameters); the job layer prefixes the node's or stage's own path, finds the
-    line (pipeline.job.config.line_of) and re-raises a ConfigError."""
+    the model or running a stage. ``path`` is the YAML path relative to where it was found: the
+    model node ``node`` (its ``where``, e.g. ``model.union[1].hfrep``) when given, else the node
+    being built or the stage's parameters; the job layer prefixes that path, finds the line
+    (pipeline.job.config.line_of) and re-raises a ConfigError."""
 
-    def __init__(self, message: str, path: tuple = ()):
+    def __init__(self, message: str, path: tuple = (), node: str | None = None):
         super().__init__(message)
         self.path = tuple(path)
+        self.node = node
 
 
 class RunError(RuntimeError):

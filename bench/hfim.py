@@ -4,7 +4,7 @@
 Columns: solve time, time to build the OpenVDB grid, leaves, tiles, stored values
 (leaves * 512 + tiles), the grid's ``memUsage``, and the max / mean error against the
 analytic distance (world units and in voxels) over random far voxels (more than 16 voxels
-outside the sphere, where hfim uses coarse cells). The flat grid is ``surface_grid(full=True)``.
+outside the sphere, where hfim uses coarse cells). The flat grid is ``level_set_grid(surface_leaves(full=True))``.
 
     .venv/bin/python bench/hfim.py --sizes 128 256 --flat-max 256
 """
@@ -17,8 +17,9 @@ import time
 
 import numpy as np
 
-from pipeline.distance.eikonal import solve_distance, surface_grid
-from pipeline.distance.hfim import hierarchical_distance, hierarchical_grid, stored_values
+from pipeline.distance.eikonal import solve_distance, surface_leaves
+from pipeline.distance.hfim import hierarchical_distance, hierarchical_tiles
+from pipeline.io.vdbgrids import level_set_grid, stored_values, tiled_grid
 from pipeline.sparse.grid import LEAF, BlockGrid
 
 CENTRE = np.array([0.013, -0.021, 0.007])
@@ -73,7 +74,7 @@ def run_flat(n: int) -> dict:
     t0 = time.perf_counter()
     res = solve_distance(band, "domain", (lo, hi))
     t1 = time.perf_counter()
-    grid = surface_grid(res, 3.0, full=True)
+    grid = level_set_grid(surface_leaves(res, 3.0, full=True), "surface")
     t2 = time.perf_counter()
     emax, emean = errors(grid, far_points(n, lo, hi), h)
     st = stored_values(grid)
@@ -90,7 +91,7 @@ def run_hfim(n: int) -> dict:
     t0 = time.perf_counter()
     res = hierarchical_distance(band, (lo, hi))
     t1 = time.perf_counter()
-    grid = hierarchical_grid(res)
+    grid = tiled_grid(*hierarchical_tiles(res), "distance", level_set=True)
     t2 = time.perf_counter()
     emax, emean = errors(grid, far_points(n, lo, hi), h)
     st = stored_values(grid)

@@ -55,7 +55,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from pipeline.sparse.grid import vdb  # noqa: E402
+from pipeline.io.vdbgrids import vdb  # noqa: E402
 
 MESH_DIR = ROOT.parent / "shared" / "meshes"
 FREPVDB = ROOT / ".venv" / "bin" / "frepvdb"

@@ -174,7 +174,7 @@ def batch_table(rows: list[Row]) -> str:
 
 
 def read_frep(path: Path, name: str = "frep") -> Any:
-    from pipeline.sparse.grid import vdb
+    from pipeline.io.vdbgrids import vdb
 
     return vdb.read(str(path), name)
 

@@ -37,9 +37,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from pipeline.io.vdbgrids import frep_to_vdb, vdb  # noqa: E402
 from pipeline.io.vdbio import write_vdb  # noqa: E402
 from pipeline.oracles import REGISTRY  # noqa: E402
-from pipeline.sparse.grid import frep_to_vdb, vdb  # noqa: E402
 from pipeline.voxel.voxelise import voxelise  # noqa: E402
 
 MODELS = {

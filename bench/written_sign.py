@@ -25,9 +25,9 @@ import trimesh
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from pipeline.io.vdbgrids import vdb  # noqa: E402
 from pipeline.job.config import load_job  # noqa: E402
 from pipeline.job.runner import run_job  # noqa: E402
-from pipeline.sparse.grid import vdb  # noqa: E402
 
 MESHES = ROOT.parent / "shared" / "meshes"
 FAMILIES = ("r0", "min_max", "sardf")

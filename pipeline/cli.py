@@ -356,12 +356,12 @@ def _fail(message: str) -> int:
 
 def _vdb_to_mesh(args) -> int:
     from pipeline.io.meshout import WRITERS, zero_set
-    from pipeline.io.vdbio import vdb
+    from pipeline.io.vdbio import read_grids
 
     if not args.input.is_file():
         return _usage(f"{args.input}: file not found")
     try:
-        grids = {g.name: g for g in vdb.readAll(str(args.input))[0]}
+        grids = read_grids(args.input)
     except Exception as e:  # noqa: BLE001 - OpenVDB raises plain RuntimeErrors here
         return _usage(f"{args.input}: does not open as a .vdb ({_one_line(e, 120)})")
     name = args.grid or next((n for n in ("surface", *(n for n, g in grids.items() if str(g.gridClass) ==

@@ -10,7 +10,8 @@ A stage is a module of this package with:
 * ``estimate_bytes(job, params, band: BandEstimate) -> (bytes, what)`` -- its peak memory, given
   the narrow band every stage holds, checked before the job starts (exit 2 with the estimate
   when it will not fit);
-* a stage that produces the :class:`FrepBand` also estimates it: ``estimate_band(job, params)
+* a stage that produces the :class:`FrepBand` without requiring one (voxelise; components
+  replaces it) also estimates it: ``estimate_band(job, params)
   -> BandEstimate``, after ``enumeration_bytes(job, params) -> (bytes, what)``, the memory of
   the estimate itself (checked first: the estimate enumerates the domain's top-level cells);
 * ``run(ctx, params) -> dict`` -- the work; the dict goes into the manifest as the stage's stats.

@@ -20,11 +20,11 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from pipeline.field import rfunctions as rf
-from pipeline.sparse.blockwrite import write_leaves
-from pipeline.sparse.grid import BlockGrid, frep_to_vdb, linear_transform, vdb
+from pipeline.io import vdbgrids as vg
+from pipeline.io.vdbio import write_vdb
+from pipeline.sparse.grid import BlockGrid
 from pipeline.topology import component_bricks as cb
 from pipeline.topology import components as cc
-from pipeline.util.atomic import atomic_path
 from stages.base import FrepBand, StageParams, band_only
 
 REQUIRES = (FrepBand,)
@@ -153,7 +153,7 @@ def _keep_pieces(ctx, found: cc.Components, labels: np.ndarray, kept: list[int])
         centre = 0.5 * (boxes[:, 0] + boxes[:, 1]) * old.voxel_size
         boxes = boxes[np.isin(cc.point_labels(found, centre), kept)]
     meta = dict(ctx.grids["frep"].metadata) if "frep" in ctx.grids else {}
-    grid = frep_to_vdb(new, boxes, "frep")
+    grid = vg.frep_to_vdb(new, boxes, "frep")
     grid.updateMetadata({k: v for k, v in meta.items() if k.startswith("frepvdb") or k == "band_voxels"})
     ctx.grids["frep"] = grid
     # inactive voxels of a removed piece may still hold + values: not signed
@@ -162,10 +162,7 @@ def _keep_pieces(ctx, found: cc.Components, labels: np.ndarray, kept: list[int])
 
 
 def _label_grid(ctx, p: Params, lab: BlockGrid, found: cc.Components):
-    grid = vdb.FloatGrid(0.0)
-    grid.name = "component"
-    grid.transform = linear_transform(lab.voxel_size)
-    write_leaves(grid, lab)
+    grid = vg.float_grid(lab, "component", background=0.0)
     grid.updateMetadata({**ctx.grid_metadata("components", p), "component_count": int(found.count),
                          "component_volumes": json.dumps([round(float(v), 9) for v in found.volumes])})
     return grid
@@ -185,13 +182,11 @@ def _separate(ctx, p: Params, found: cc.Components, labels: np.ndarray, kept: li
     for k in kept:
         field = cc.ClusterField(sep, mapping[k], p.method)
         piece = _piece_blocks(blocks, labels, k, field, voxel_depth, ctx.job.domain.index_min)
-        grid = frep_to_vdb(piece, boxes[box_labels == k], "frep")
+        grid = vg.frep_to_vdb(piece, boxes[box_labels == k], "frep")
         grid.updateMetadata({**ctx.grid_metadata("components", p), "component_index": int(k),
                              "component_volume": float(found.volumes[k - 1])})
         path = ctx.out_dir / f"{ctx.job.name}_component_{k}.vdb"
-        with atomic_path(path) as tmp:
-            vdb.write(str(tmp), grids=[grid], metadata={"creator": "frepvdb", "config": ctx.job.name,
-                                                        "component": int(k)})
+        write_vdb(path, [grid], {"creator": "frepvdb", "config": ctx.job.name, "component": int(k)})
         ctx.add_output(path, "vdb")
         files.append(path.name)
     return {"files": files, "method": p.method, "separation_depth": int(sep.tree.depth)}

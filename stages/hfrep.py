@@ -2,8 +2,8 @@
 ``density`` fog volume; field-quality numbers for the manifest; attribute grids
 parameterised by distance (hfrep section 7, ``attributes:``).
 
-Library calls: pipeline.distance.eikonal.solve_distance / surface_grid, pipeline.distance.hfrep.hfrep_blocks,
-pipeline.distance.quality, pipeline.distance.attributes.
+Library calls: pipeline.distance.eikonal.solve_distance / surface_leaves, pipeline.distance.hfrep.hfrep_blocks,
+pipeline.distance.quality, pipeline.distance.attributes; the grids are made by pipeline.io.vdbgrids.
 """
 
 from __future__ import annotations
@@ -15,10 +15,12 @@ from pydantic import AfterValidator, Field, field_validator, model_validator
 
 from pipeline.distance import attributes as attr
 from pipeline.distance.attributes import check_formula
-from pipeline.distance.eikonal import solve_distance, surface_grid
-from pipeline.distance.hfim import fill_deep, fill_tiles, hierarchical_distance, hierarchical_grid, interior_tiles
-from pipeline.distance.hfrep import density_grid, hfrep_blocks, hfrep_grid
+from pipeline.distance.eikonal import solve_distance, surface_leaves
+from pipeline.distance.hfim import fill_deep, hierarchical_distance, hierarchical_tiles, interior_tiles
+from pipeline.distance.hfrep import density_leaves, hfrep_blocks
 from pipeline.distance.quality import field_report
+from pipeline.io import vdbgrids as vg
+from pipeline.sparse.blockwrite import LeafSource
 from pipeline.util.errors import InputError
 from pipeline.voxel.voxelise import LEAF_PEAK_BYTES, WORK_BYTES, estimate_interior_voxels
 from stages.base import BandEstimate, FrepBand, StageParams
@@ -108,20 +110,22 @@ def run(ctx, p: Params) -> dict:
         fill_deep(hf, res, tiles[2])  # the fine blocks' inside voxels beyond the fine solve's limit
     # build the grids one at a time and drop each working copy: at 1024^3 the interior
     # distance is hundreds of millions of voxels
-    hgrid = hfrep_grid(hf, consume=True)  # frep_to_vdb's grid for these blocks, released as written
+    hgrid = vg.frep_grid_of_leaves(LeafSource.of(hf, consume=True), "hfrep")  # hf released as written
     hgrid.updateMetadata({**meta, "step": p.step, "slope": p.slope})
     del hf
     if tiles is not None:
-        fill_tiles(hgrid, tiles[0], tiles[1])
+        vg.fill_tiles(hgrid, tiles[0], tiles[1])
     if p.density:
         coarse = None if tiles is None else (tiles[0], np.clip(tiles[1] / (band * h), 0.0, 1.0))
-        ctx.grids["density"] = density_grid(res, band * h, coarse)
+        ctx.grids["density"] = vg.fog_grid(*density_leaves(res, band * h, coarse), "density")
         ctx.grids["density"].updateMetadata(meta)
     if p.solver == "hfim":
-        surface = hierarchical_grid(hres, "surface", background=band * h)  # SPEC: background = band * h
+        fine, coarse_tiles = hierarchical_tiles(hres, background=band * h)  # SPEC: background = band * h
+        surface = vg.tiled_grid(fine, coarse_tiles, "surface", level_set=True)
         stats["hfim"] = {k: v for k, v in hres.stats.items() if k != "fine"}
     else:
-        surface = surface_grid(res, band, full=p.surface == "full", consume=True)  # the last use of res
+        surface = vg.level_set_grid(surface_leaves(res, band, full=p.surface == "full", consume=True),
+                                    "surface")  # the last use of res
     surface.updateMetadata(meta)
     ctx.grids["surface"], ctx.grids["hfrep"] = surface, hgrid
     return stats
@@ -191,7 +195,7 @@ def _attributes(ctx, p: Params, res, hf, band: float, meta: dict) -> dict:
         except attr.NonFiniteAttribute as e:
             tail = ("formula",) if a.formula is not None else ("rgb", e.component)
             raise InputError(str(e), ("attributes", a_index) + tail) from None
-        grid = attr.attribute_grid(a.name, values, vox)
+        grid = vg.attribute_grid(a.name, values, vox.origins, vox.active, vox.voxel_size)
         grid.updateMetadata({**meta, "attribute": a.name, "attribute_formulas": " ; ".join(srcs),
                              "attribute_outside": a.outside})
         ctx.grids[a.name] = grid

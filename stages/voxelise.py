@@ -12,7 +12,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from pipeline.sparse.grid import frep_to_vdb
+from pipeline.io.vdbgrids import frep_to_vdb
 from pipeline.voxel.voxelise import (
     assemble,
     bricks_for,

@@ -12,8 +12,8 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 import frepvdb as fv
+from pipeline.io.vdbgrids import vdb
 from pipeline.job.config import ConfigError
-from pipeline.sparse.grid import vdb
 from tests.test_tape import check_tape, job_of
 
 BOX = "{box: {min: [-0.6, -0.6, -0.6], max: [0.6, 0.6, 0.6]}}"

@@ -14,10 +14,10 @@ from hypothesis import strategies as st
 
 import frepvdb as fv
 from pipeline.cli import main
+from pipeline.io.vdbgrids import vdb
 from pipeline.job.config import load_job
 from pipeline.model import tape as pt
 from pipeline.oracles import REGISTRY
-from pipeline.sparse.grid import vdb
 
 BOUNDS = [[-1.2, -1.2, -1.2], [1.2, 1.2, 1.2]]
 

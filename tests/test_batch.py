@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from pipeline.cli import main
+from pipeline.io.vdbgrids import vdb
 from pipeline.job.batch import DaskExecutor, Executor, LocalExecutor, run_batch
 from pipeline.job.config import load_jobs
-from pipeline.sparse.grid import vdb
 
 BATCH = """name: batch
 domain: {{bounds: [[-1, -1, -1], [1, 1, 1]], resolution: 40}}

@@ -14,8 +14,8 @@ from scipy import ndimage
 
 from pipeline.cli import main
 from pipeline.field import rfunctions as rf
+from pipeline.io.vdbgrids import vdb
 from pipeline.job.config import _Ctx, build_node
-from pipeline.sparse.grid import vdb
 from pipeline.topology import components as cc
 
 FAST = settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])

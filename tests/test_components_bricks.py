@@ -13,10 +13,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from pipeline.io.vdbgrids import vdb
 from pipeline.job.batch import DaskExecutor, Executor, LocalExecutor, run_batch
 from pipeline.job.config import _Ctx, build_node, load_jobs
 from pipeline.model.base import Node
-from pipeline.sparse.grid import vdb
 from pipeline.topology import component_bricks as cb
 from pipeline.topology import components as cc
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main
-from pipeline.sparse.grid import vdb
+from pipeline.io.vdbgrids import vdb
 
 GOOD = """name: {name}
 domain:

@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from pipeline.cli import main
-from pipeline.sparse.grid import vdb
+from pipeline.io.vdbgrids import vdb
 
 
 @pytest.fixture(scope="module")

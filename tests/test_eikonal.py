@@ -13,10 +13,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.distance.eikonal import signed_distance_blocks, solve_distance, surface_blocks, surface_grid
+from pipeline.distance.eikonal import signed_distance_blocks, solve_distance, surface_blocks, surface_leaves
 from pipeline.distance.hfrep import HFRepField, hfrep_blocks
 from pipeline.distance.quality import central_gradient, extra_zero_crossings, gradient_stats
-from pipeline.sparse.grid import LEAF, BlockGrid, vdb
+from pipeline.io.vdbgrids import level_set_grid, vdb
+from pipeline.sparse.grid import LEAF, BlockGrid
 
 C = np.array([0.013, -0.021, 0.007])  # off-grid centre: no voxel-aligned symmetry
 HALF = np.array([0.5, 0.35, 0.45])
@@ -292,7 +293,7 @@ def test_surface_level_set_grid() -> None:
     blocks = surface_blocks(res, band, full=True)
     assert blocks.background == pytest.approx(band * h)
     assert np.all(np.abs(blocks.values[~blocks.active]) == pytest.approx(band * h))
-    grid = surface_grid(res, band, full=True)  # the whole solved region; the default is a narrow band
+    grid = level_set_grid(surface_leaves(res, band, full=True), "surface")  # the whole solved region; the default is a narrow band
     assert grid.gridClass == vdb.GridClass.LEVEL_SET
     assert grid.name == "surface"
     acc = grid.getConstAccessor()

@@ -13,9 +13,9 @@ from test_eikonal import SHAPES, band_grid
 
 from pipeline.distance.eikonal import solve_distance
 from pipeline.distance.eikonal_bricks import brick_of_blocks
+from pipeline.io.vdbgrids import vdb
 from pipeline.job.batch import DaskExecutor, Executor, LocalExecutor, run_batch
 from pipeline.job.config import load_jobs
-from pipeline.sparse.grid import vdb
 
 N = 64
 H = 2.0 / N

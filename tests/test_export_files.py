@@ -21,9 +21,9 @@ import vtk
 from vtk.util import numpy_support as nps
 
 from pipeline.io import previews, report, vtkio
+from pipeline.io.vdbgrids import grid_stats, linear_transform, vdb
 from pipeline.io.vdbinfo import describe_vdb
 from pipeline.io.vdbio import metadata_value, set_grid_metadata, write_vdb
-from pipeline.sparse.grid import grid_stats, linear_transform, vdb
 
 VOXEL = 0.05
 HALF = 24  # index domain [-HALF, HALF]^3

@@ -13,7 +13,7 @@ import vtk
 from vtk.util import numpy_support as nps
 
 from pipeline.io import meshkernels, vtkio
-from pipeline.sparse.grid import linear_transform, vdb
+from pipeline.io.vdbgrids import linear_transform, vdb
 from tests.test_export_files import VOXEL, sample_grids
 
 

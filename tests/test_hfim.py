@@ -10,8 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.distance.eikonal import solve_distance
-from pipeline.distance.hfim import fill_tiles, hierarchical_distance, hierarchical_grid, stored_values
-from pipeline.sparse.grid import LEAF, vdb
+from pipeline.distance.hfim import hierarchical_distance, hierarchical_tiles
+from pipeline.io.vdbgrids import fill_tiles, stored_values, tiled_grid, vdb
+from pipeline.sparse.grid import LEAF
 from tests.test_eikonal import band_grid, box_of, sphere_of
 
 HALF = np.array([0.2, 0.15, 0.18])
@@ -92,7 +93,7 @@ def test_written_grid_has_tiles_for_far_space(tmp_path) -> None:
     n = 128
     h = 2.0 / n
     _, dom, res = hfim("sphere", n)
-    grid = hierarchical_grid(res, "distance")
+    grid = tiled_grid(*hierarchical_tiles(res), "distance", level_set=True)
     path = tmp_path / "hfim.vdb"
     vdb.write(str(path), grids=[grid])
     back = vdb.read(str(path), "distance")
@@ -120,13 +121,13 @@ def test_written_grid_has_tiles_for_far_space(tmp_path) -> None:
 
 def test_tiles_are_tiles_not_leaves() -> None:
     _, _, res = hfim("sphere", 64)
-    grid = hierarchical_grid(res)
+    grid = tiled_grid(*hierarchical_tiles(res), "distance", level_set=True)
     st = stored_values(grid, count_tiles=True)
     assert st["tiles_by_voxels"] == {LEAF**3: res.stats["written"]["leaf_tiles"]}
     assert st["stored_values"] == res.stats["written"]["stored_values"]
     kw = {"levels": (8, 32), "coarse_distance_vox": 40.0}
     _, _, res2 = hfim("sphere", 128, **kw)
-    g2 = hierarchical_grid(res2)
+    g2 = tiled_grid(*hierarchical_tiles(res2), "distance", level_set=True)
     assert res2.stats["written"]["big_tiles"] > 0
     # a 32^3 cell is 64 leaf-sized tiles: no leaf is made for it
     assert g2.leafCount() == res2.stats["written"]["leaves"]
@@ -139,7 +140,7 @@ def test_storage_grows_like_area() -> None:
     stored, flat_stored = [], []
     for n in (64, 128):
         _, _, res = hfim("sphere", n)
-        hierarchical_grid(res)
+        hierarchical_tiles(res)
         stored.append(res.stats["written"]["stored_values"])
         flat_stored.append(len(flat("sphere", n).distance.origins) * LEAF**3)
     assert stored[1] / stored[0] < 5

@@ -93,11 +93,10 @@ def test_fim_dirty_faces_give_the_full_sweeps_result() -> None:
 
 
 def test_batched_writer_builds_the_same_grid() -> None:
-    """grid.write_blocks and blockwrite.write_leaves (runs packed by a compiled pass, split where
+    """vdbgrids.write_leaves, in one batch and in batches of 37 (runs packed by a compiled pass, split where
     a batch ends) give the grid of a plain reference, one copyFromArray per block of
     where(active, -value, background): same values, active voxels and leaves."""
-    from pipeline.sparse.blockwrite import write_leaves
-    from pipeline.sparse.grid import vdb, write_blocks
+    from pipeline.io.vdbgrids import vdb, write_leaves
 
     frep, (lo, hi) = band_grid(sphere, 48)
     shape = tuple(int(x) for x in hi - lo + 9)
@@ -108,7 +107,7 @@ def test_batched_writer_builds_the_same_grid() -> None:
             g.copyFromArray(np.where(m, -v, bg).astype(np.float32), tuple(int(x) for x in o))
 
     grids = []
-    for write in (reference, lambda g: write_blocks(g, frep, -1.0), lambda g: write_leaves(g, frep, -1.0, batch=37)):
+    for write in (reference, lambda g: write_leaves(g, frep, -1.0), lambda g: write_leaves(g, frep, -1.0, batch=37)):
         g = vdb.FloatGrid(float(frep.background))
         g.name = "g"
         write(g)
@@ -137,13 +136,14 @@ def test_release_rows_frees_whole_pages_of_the_given_rows_only() -> None:
 
 
 def test_surface_grid_consuming_the_solve_writes_the_same_grid(sph, monkeypatch) -> None:
-    from pipeline.distance.eikonal import EikonalResult, surface_grid
-    from pipeline.sparse import grid as grid_module
+    from pipeline.distance.eikonal import EikonalResult, surface_leaves
+    from pipeline.io import vdbgrids
+    from pipeline.io.vdbgrids import level_set_grid
     from pipeline.sparse.blockwrite import mapped_empty
     from pipeline.sparse.grid import BlockGrid
 
     _, res = sph
-    monkeypatch.setattr(grid_module, "BATCH", 7)  # many batches, each releasing the blocks before the next
+    monkeypatch.setattr(vdbgrids, "BATCH", 7)  # many batches, each releasing the blocks before the next
     grids = []
     for consume in (False, True):
         d = res.distance
@@ -151,7 +151,7 @@ def test_surface_grid_consuming_the_solve_writes_the_same_grid(sph, monkeypatch)
         for c, x in zip(copy, (d.values, d.active, res.inside), strict=True):
             c[:] = x
         r = EikonalResult(BlockGrid(d.voxel_size, d.background, d.origins, copy[0], copy[1]), copy[2], res.max_distance)
-        g = surface_grid(r, 3.0, consume=consume)
+        g = level_set_grid(surface_leaves(r, 3.0, consume=consume), "surface")
         grids.append((g.activeVoxelCount(), g.leafCount(), g.evalMinMax(), copy))
     assert grids[0][:3] == grids[1][:3] and grids[0][0] > 5000
     assert (grids[0][3][0] == res.distance.values).all() and not (grids[1][3][0] == res.distance.values).all()

@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.cli import main
+from pipeline.io.vdbgrids import vdb
 from pipeline.job.config import _Ctx, build_node
-from pipeline.sparse.grid import vdb
 
 C = np.array([0.031, -0.017, 0.012])  # off-grid centre
 R = 0.6

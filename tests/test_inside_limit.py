@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from pipeline.distance.eikonal import INSIDE_MARGIN, solve_distance
-from pipeline.distance.hfim import fill_deep, fill_tiles, interior_tiles
-from pipeline.distance.hfrep import density_grid, hfrep_blocks
-from pipeline.sparse.grid import frep_to_vdb
+from pipeline.distance.hfim import fill_deep, interior_tiles
+from pipeline.distance.hfrep import density_leaves, hfrep_blocks
+from pipeline.io.vdbgrids import fill_tiles, fog_grid, frep_to_vdb
 from tests.test_eikonal import band_grid, box_of, sphere_of
 
 N = 96
@@ -78,7 +78,7 @@ def test_deep_voxels_and_tiles_read_back_within_the_bound(pair) -> None:
     fill_deep(hf, lim, fill)
     grid = frep_to_vdb(hf, np.zeros((0, 2, 3), np.int64), "hfrep")
     fill_tiles(grid, origins, values)
-    dens = density_grid(lim, 3 * H)
+    dens = fog_grid(*density_leaves(lim, 3 * H), "density")
     fill_tiles(dens, origins, np.ones(len(origins)))
     lo, hi = (np.asarray(b) for b in dom)
     shape = tuple(int(x) for x in hi - lo + 1)

@@ -159,3 +159,33 @@ def test_the_layer_check_sees_an_upward_import_in_a_function(tmp_path) -> None:
     assert imps == [("pipeline.job.config", 5, True)]
     assert upward({"pipeline.field.x": imps}) == [
         "pipeline.field.x:5 imports pipeline.job.config (field -> job, in a function)"]
+
+
+def openvdb_users(files: list[Path]) -> list[str]:
+    """Modules outside pipeline/io that import OpenVDB's module or the name ``vdb`` from ours."""
+    found = []
+    for p in files:
+        for node in ast.walk(ast.parse(p.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                names = [node.module or ""] + [a.name for a in node.names if (node.module or "").startswith("pipeline")]
+            if any(n.split(".")[0] in ("pyopenvdb", "openvdb") or n == "vdb" for n in names):
+                found.append(f"{p}:{node.lineno}")
+    return found
+
+
+def test_only_the_io_layer_touches_openvdb() -> None:
+    """Grids are made (pipeline.io.vdbgrids), written, read and inspected (vdbio, vdbinfo) in
+    pipeline/io alone: the algorithms hand over BlockGrids, leaf streams and tile lists."""
+    files = [p for d in ("pipeline", "stages", "frepvdb") for p in (ROOT / d).rglob("*.py")
+             if not p.is_relative_to(ROOT / "pipeline" / "io")]
+    assert not openvdb_users(files)
+
+
+def test_the_openvdb_check_sees_an_import(tmp_path) -> None:
+    a, b = tmp_path / "a.py", tmp_path / "b.py"
+    a.write_text("def f():\n    import pyopenvdb as v\n    return v\n")
+    b.write_text("from pipeline.io.vdbgrids import frep_to_vdb, vdb\n")
+    assert len(openvdb_users([a, b])) == 2

@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.cli import main
+from pipeline.io.vdbgrids import vdb
 from pipeline.oracles import REGISTRY
-from pipeline.sparse.grid import vdb
 
 
 def node(kind, **params):

@@ -13,7 +13,7 @@ import pytest
 import trimesh
 
 from pipeline.cli import main
-from pipeline.sparse.grid import vdb
+from pipeline.io.vdbgrids import vdb
 
 NS = {"m": "http://schemas.microsoft.com/3dmanufacturing/core/2015/02"}
 

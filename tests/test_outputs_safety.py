@@ -22,8 +22,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.cli import main
+from pipeline.io.vdbgrids import vdb
 from pipeline.job.outputs import JobLock, job_name_problem, recover, staging_dir, verify_outputs
-from pipeline.sparse.grid import vdb
 
 ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable

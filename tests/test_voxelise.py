@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from pipeline.io.vdbgrids import frep_to_vdb, vdb
 from pipeline.oracles import REGISTRY
-from pipeline.sparse.grid import frep_to_vdb, vdb
 from pipeline.voxel.voxelise import enumerate_cells, voxelise
 
 

@@ -25,7 +25,7 @@ import trimesh
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from pipeline.sparse.grid import vdb
+from pipeline.io.vdbgrids import vdb
 from tests.written_grids import model_values, read_box, run_config, unclosed_pairs
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.io.vdbgrids import vdb
 from pipeline.job.config import load_job
 from pipeline.job.runner import run_job
-from pipeline.sparse.grid import vdb
 
 ACTIVE = np.float32(3.0e38)  # sentinel written over active values to read the active mask back
 

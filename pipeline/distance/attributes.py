@@ -26,14 +26,13 @@ written as a formula, e.g. material 1 where ``sin(40 x) + 0.3 > 0`` and a solid 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from pipeline.model.base import Node
 from pipeline.model.expr import FormulaError, parse_formula
-from pipeline.sparse.grid import BlockGrid, linear_transform, vdb, write_blocks
+from pipeline.sparse.grid import BlockGrid
 
 VARIABLES = ("d",)
 
@@ -131,30 +130,3 @@ class NonFiniteAttribute(ValueError):
                          "(division by zero, log or sqrt of a negative number?)")
 
 
-def attribute_grid(name: str, values: np.ndarray, vox: AttributeVoxels):
-    """pyopenvdb FloatGrid (values (L,8,8,8)) or Vec3SGrid (values (L,8,8,8,3)).
-
-    Every covered voxel is active, also where its value equals the background 0:
-    ``copyFromArray`` deactivates values equal to the grid's background, so the grid is
-    written with a sentinel background that no value takes and then switched to 0
-    (OpenVDB's changeBackground replaces only inactive sentinel values).
-    """
-    vector = values.ndim == 5
-    finite = values[vox.active]
-    sentinel = float(np.float32(2.0 * math.floor(np.abs(finite).max(initial=0.0)) + 2.0))
-    if vector:
-        grid = vdb.Vec3SGrid((sentinel,) * 3)
-        dense = np.where(vox.active[..., None], values, sentinel).astype(np.float32)
-        for b, o in enumerate(vox.origins):
-            if vox.active[b].any():
-                grid.copyFromArray(np.ascontiguousarray(dense[b]), tuple(int(c) for c in o))
-        grid.background = (0.0, 0.0, 0.0)
-        grid.prune((0.0, 0.0, 0.0))
-    else:
-        grid = vdb.FloatGrid(sentinel)
-        write_blocks(grid, BlockGrid(vox.voxel_size, sentinel, vox.origins, values.astype(np.float32), vox.active))
-        grid.background = 0.0
-        grid.prune()
-    grid.name = name
-    grid.transform = linear_transform(vox.voxel_size)
-    return grid

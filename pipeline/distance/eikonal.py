@@ -46,8 +46,8 @@ from scipy import ndimage
 from pipeline.distance.eikonal_bricks import BrickedFIM
 from pipeline.distance.fim import EXCLUDED, FREE, FROZEN, block_colour, fim, init_interface
 from pipeline.sparse.access import FACE_DIRS, block_neighbours, block_neighbours27
-from pipeline.sparse.blockwrite import mapped_empty, release_rows, write_batched, write_leaves
-from pipeline.sparse.grid import LEAF, BlockGrid, linear_transform, merge_sorted, pack_keys, vdb
+from pipeline.sparse.blockwrite import LeafSource, mapped_empty, release_rows
+from pipeline.sparse.grid import LEAF, BlockGrid, merge_sorted, pack_keys
 
 SECOND_ORDER_VISITS = 50  # block visits per block before a second-order pass is abandoned
 
@@ -800,33 +800,24 @@ def _band_values(values, active, inside, rows, bg, out_v, out_a):
                     out_v[t, i, j, k] = -v if inside[b, i, j, k] else v
 
 
-def surface_grid(result: EikonalResult, band: float, name: str = "surface", full: bool = False,
-                 consume: bool = False):
-    """pyopenvdb ``FloatGrid`` of :func:`surface_blocks`, class LEVEL_SET, sign flood-filled.
-    The narrow band is written a batch of blocks at a time (never held whole). ``consume``
-    (narrow band only): the distance and side arrays of ``result`` are released as the band is
-    written (``result`` is not to be read afterwards: the last use of a solve)."""
-
+def surface_leaves(result: EikonalResult, band: float, full: bool = False, consume: bool = False) -> LeafSource:
+    """The leaves of the ``surface`` level set (:func:`surface_blocks`; background ``band`` voxels
+    in world units), for pipeline.io.vdbgrids.level_set_grid. The narrow band is made a batch of
+    blocks at a time as it is written (never held whole). ``consume`` (narrow band only): the
+    distance and side arrays of ``result`` are released as the band is written (``result`` is
+    not to be read afterwards: the last use of a solve)."""
     bg = float(band) * result.distance.voxel_size
-    grid = vdb.FloatGrid(bg)
-    grid.name = name
-    grid.transform = linear_transform(result.distance.voxel_size)
-    grid.gridClass = vdb.GridClass.LEVEL_SET
     if full:
-        write_leaves(grid, surface_blocks(result, band, full))
-    else:
-        dist = result.distance
-        bg32 = np.float32(bg)
-        rows = np.flatnonzero(_near_blocks(dist.values, dist.active, bg32))
+        return LeafSource.of(surface_blocks(result, band, full))
+    dist = result.distance
+    bg32 = np.float32(bg)
+    rows = np.flatnonzero(_near_blocks(dist.values, dist.active, bg32))
 
-        def fill(lo, hi, values, active):
-            _band_values(dist.values, dist.active, result.inside, rows[lo:hi], bg32, values, active)
+    def fill(lo, hi, values, active):
+        _band_values(dist.values, dist.active, result.inside, rows[lo:hi], bg32, values, active)
 
-        def done(hi):  # no later batch reads the blocks before the next band block
-            upto = int(rows[hi]) if hi < len(rows) else len(dist.values)
-            for arr in (dist.values, dist.active, result.inside):
-                release_rows(arr, upto)
-        write_batched(grid, dist.origins[rows], fill, done=done if consume else None)
-    grid.signedFloodFill()
-    grid.prune()
-    return grid
+    def done(hi):  # no later batch reads the blocks before the next band block
+        upto = int(rows[hi]) if hi < len(rows) else len(dist.values)
+        for arr in (dist.values, dist.active, result.inside):
+            release_rows(arr, upto)
+    return LeafSource(dist.voxel_size, bg, dist.origins[rows], fill=fill, done=done if consume else None)

@@ -24,7 +24,7 @@ only the cells wholly beyond the reach, each written as one 128^3 tile.
 Finer entries left unsolved (a leaf the fine front only partly reached, a level-1 node past
 its reach) are filled by trilinear interpolation of the next level.
 
-The written grid (:func:`hierarchical_grid`) stores fine leaves where the fine level solved,
+The written grid (:func:`hierarchical_tiles`) stores fine leaves where the fine level solved,
 leaf-sized tiles for level-1 cells and 128^3 tiles for level-2 cells, so the far field costs
 one value per cell: the memory grows with the object's area, not with the domain's volume.
 """
@@ -43,7 +43,7 @@ from scipy import ndimage
 from pipeline.distance.eikonal import SECOND_ORDER_VISITS, EikonalResult, solve_distance
 from pipeline.distance.fim import EXCLUDED, FREE, FROZEN, fim, upwind3
 from pipeline.sparse.access import block_neighbours27
-from pipeline.sparse.grid import LEAF, BlockGrid, linear_transform, pack_keys, vdb, write_blocks
+from pipeline.sparse.grid import LEAF, BlockGrid
 
 LEVEL_CELLS = (8, 128)  # cell edge in voxels of levels 1, 2: an OpenVDB leaf and an internal-node child
 
@@ -537,90 +537,6 @@ def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, s
                         out_a[b, i, j, k] = True
 
 
-def fill_tiles(grid, origins: np.ndarray, values: np.ndarray, cell: int = LEAF,
-               merge_value: float | None = None) -> None:
-    """Active constant tiles of edge ``cell`` voxels (``grid.fill`` over whole leaves makes
-    tiles). Tiles that follow each other along z with the same value go in one call; those of
-    value ``merge_value`` are merged into boxes along y and x too, so a solid region of it
-    costs a few calls and OpenVDB makes it coarser tiles (a density's interior of 1: at 2048^3
-    7.6M leaf tiles). The calls take coordinates from per-axis lists of Python ints built
-    once (the tile lattice indices are small ints Python shares): at 1M tiles 0.65 s instead
-    of 0.94 s with a list per corner."""
-    o = np.asarray(origins, np.int64).reshape(-1, 3)
-    v = np.asarray(values, np.float32).reshape(-1)
-    if len(o) == 0:
-        return
-    keys = pack_keys(o)  # in x, y, z order
-    if len(o) > 1 and not (np.diff(keys) > 0).all():  # interior_tiles gives them in order already
-        order = np.argsort(keys, kind="stable")
-        o, v = o[order], v[order]
-    if merge_value is not None:
-        same = v == np.float32(merge_value)
-        if same.any():
-            lo, hi = _merged_boxes(o[same], cell)
-            fill = grid.fill
-            x = float(np.float32(merge_value))
-            for a, b in zip(lo.tolist(), hi.tolist(), strict=True):
-                fill(a, b, x, True)
-            o, v = o[~same], v[~same]
-            if len(o) == 0:
-                return
-    starts, ends = _z_runs(o, v, cell)
-    _fill_runs(grid, o, v, starts, ends, cell)
-
-
-def _z_runs(o: np.ndarray, v: np.ndarray | None, cell: int) -> tuple[np.ndarray, np.ndarray]:
-    """First and last row of every run of tiles (sorted by x, y, z) that follow each other
-    along z with the same value (any value when ``v`` is None)."""
-    brk = np.ones(len(o), bool)
-    brk[1:] = (o[1:, 0] != o[:-1, 0]) | (o[1:, 1] != o[:-1, 1]) | (o[1:, 2] != o[:-1, 2] + cell)
-    if v is not None:
-        brk[1:] |= v[1:] != v[:-1]
-    starts = np.flatnonzero(brk)
-    return starts, np.append(starts[1:], len(o)) - 1
-
-
-def _merged_boxes(o: np.ndarray, cell: int) -> tuple[np.ndarray, np.ndarray]:
-    """Inclusive (lo, hi) voxel boxes covering the sorted tiles ``o`` exactly: runs along z,
-    then runs with the same z extent joined along y, then boxes with the same y, z extent
-    joined along x (not the fewest boxes, but a solid region becomes a handful)."""
-    s, e = _z_runs(o, None, cell)
-    lo, hi = o[s], o[e] + (cell - 1)
-    for axis in (1, 0):  # join along y, then along x
-        rest = [a for a in range(3) if a != axis]
-        keys = (lo[:, axis],) + tuple(hi[:, a] for a in reversed(rest)) + tuple(lo[:, a] for a in reversed(rest))
-        order = np.lexsort(keys)  # by the other axes' extents, then along this axis
-        lo, hi = lo[order], hi[order]
-        brk = np.ones(len(lo), bool)
-        brk[1:] = (lo[1:, axis] != hi[:-1, axis] + 1)
-        for a in rest:
-            brk[1:] |= (lo[1:, a] != lo[:-1, a]) | (hi[1:, a] != hi[:-1, a])
-        first = np.flatnonzero(brk)
-        last = np.append(first[1:], len(lo)) - 1
-        lo, hi = lo[first], hi[last]  # the other axes' extents are equal within a group
-    return lo, hi
-
-
-def _fill_runs(grid, o: np.ndarray, v: np.ndarray, starts: np.ndarray, ends: np.ndarray, cell: int) -> None:
-    """One ``grid.fill`` per run (:func:`_z_runs`), its corners taken from per-axis lists of
-    Python ints made once (no new int objects per call: lattice indices up to 256 are ints
-    Python shares)."""
-    base = o.min(axis=0)
-    idx = (o - base) // cell
-    span = int(idx.max()) + 1
-    lo_ax = [[int(base[a]) + cell * n for n in range(span)] for a in range(3)]
-    hi_ax = [[int(base[a]) + cell * n + cell - 1 for n in range(span)] for a in range(3)]
-    (x0, y0, z0), (x1, y1, z1) = lo_ax, hi_ax
-    fill = grid.fill
-    for c in range(0, len(starts), FILL_CHUNK):  # a chunk's lists at a time: 7.6M at once is ~2 GB of objects
-        s, e = starts[c:c + FILL_CHUNK], ends[c:c + FILL_CHUNK]
-        for (i, j, k), kk, x in zip(idx[s].tolist(), idx[e, 2].tolist(), v[s].astype(float).tolist(), strict=True):
-            fill((x0[i], y0[j], z0[k]), (x1[i], y1[j], z1[kk]), x, True)
-
-
-FILL_CHUNK = 1 << 16
-
-
 def sample_distance(res: HierarchicalResult, ijk: np.ndarray) -> np.ndarray:
     """Distance (voxel units) at voxel indices from the coarse levels: the finest level whose
     trilinear interpolation is defined there (no fine level: use the fine grid for that)."""
@@ -694,51 +610,23 @@ def hierarchical_blocks(res: HierarchicalResult, signed: bool = True):
     return BlockGrid(h, bg, dist.origins, values, active)
 
 
-def hierarchical_grid(res: HierarchicalResult, name: str = "distance", signed: bool = True,
-                      background: float | None = None):
-    """ONE pyopenvdb FloatGrid: fine leaves near the object (and inside), leaf-sized tiles for
-    level-1 cells, 128^3 tiles for level-2 cells (``grid.fill`` over whole nodes makes tiles).
-    World units; negative inside when ``signed`` (OpenVDB level-set convention).
-    ``background``: the grid's background (default: the largest distance stored); every voxel
-    of the domain box is active, so it only shows outside the domain."""
+def hierarchical_tiles(res: HierarchicalResult, signed: bool = True, background: float | None = None,
+                       ) -> tuple[BlockGrid, list[tuple[np.ndarray, np.ndarray, int]]]:
+    """What ONE grid of the solve holds (pipeline.io.vdbgrids.tiled_grid): fine leaves near the
+    object (and inside), leaf-sized tiles for level-1 cells, 128^3 tiles for level-2 cells, as
+    (leaves, [(origins, values, cell)] big tiles first). World units; negative inside when
+    ``signed`` (OpenVDB level-set convention). ``background``: the grid's (default: the largest
+    distance stored); every voxel of the domain box is active, so it only shows outside it."""
     blocks = hierarchical_blocks(res, signed)
     h = res.voxel_size
     origins, vals, big_origins, big_vals = _tile_plan(res)
     bg = float(max(blocks.background, np.max(vals * h, initial=0.0), np.max(big_vals * h, initial=0.0))) \
         if background is None else float(background)
-    grid = vdb.FloatGrid(bg)
-    grid.name = name
-    grid.transform = linear_transform(h)
-    if signed:
-        grid.gridClass = vdb.GridClass.LEVEL_SET
     big_cell = res.levels[1].cell if len(res.levels) > 1 else 0
-    for o, v in zip(big_origins.tolist(), big_vals.tolist(), strict=True):
-        grid.fill(tuple(o), tuple(x + big_cell - 1 for x in o), float(v * h), True)
-    cell = res.levels[0].cell
-    for o, v in zip(origins.tolist(), vals.tolist(), strict=True):
-        grid.fill(tuple(o), tuple(x + cell - 1 for x in o), float(v * h), True)
     blocks.background = bg
-    write_blocks(grid, blocks)
     res.stats["written"] = {"leaves": int(len(blocks.origins)), "leaf_tiles": int(len(origins)),
                             "big_tiles": int(len(big_origins)),
                             "stored_values": int(len(blocks.origins) * LEAF**3 + len(origins) + len(big_origins))}
-    return grid
+    return blocks, [(big_origins, big_vals * h, big_cell), (origins, vals * h, res.levels[0].cell)]
 
 
-def stored_values(grid, count_tiles: bool = False) -> dict:
-    """Leaves, voxels held by tiles, memory (bytes) and stored values (leaves * 512 + tiles).
-
-    ``count_tiles`` walks ``iterOnValues`` (one Python call per active voxel: small grids only)
-    to count the active tiles by size; without it the tile count is left out."""
-    leaves = int(grid.leafCount())
-    out = {"leaves": leaves, "tile_voxels": int(grid.activeVoxelCount() - grid.activeLeafVoxelCount()),
-           "mem_bytes": int(grid.memUsage())}
-    if count_tiles:
-        tiles: dict[int, int] = {}
-        for item in grid.iterOnValues():
-            if item["depth"] < 3:  # depth 3: voxels of leaves
-                tiles[item["count"]] = tiles.get(item["count"], 0) + 1
-        out["tiles_by_voxels"] = tiles
-        out["tiles"] = sum(tiles.values())
-        out["stored_values"] = leaves * 512 + out["tiles"]
-    return out

@@ -30,10 +30,9 @@ from numba import njit, prange
 from scipy.special import expit
 
 from pipeline.distance.eikonal import EikonalResult
-from pipeline.distance.hfim import fill_tiles
 from pipeline.distance.spline import TricubicSpline
-from pipeline.sparse.blockwrite import mapped_empty, write_batched, write_leaves
-from pipeline.sparse.grid import LEAF, BlockGrid, linear_transform, merge_sorted, negate_active, pack_keys, vdb
+from pipeline.sparse.blockwrite import LeafSource, mapped_empty
+from pipeline.sparse.grid import LEAF, BlockGrid, merge_sorted, pack_keys
 
 STEPS = ("sigmoid", "tanh", "rational")
 
@@ -86,7 +85,8 @@ def hfrep_blocks(
         for a in range(0, len(table), 8192):
             act = frep.active[a:a + 8192]
             table[a:a + 8192][act] = step_function(frep.values[a:a + 8192][act], step, slope)
-    # float32 throughout (this grid covers the whole interior), on mappings hfrep_grid can release
+    # float32 throughout (this grid covers the whole interior), on mappings the writer can
+    # release as it writes (LeafSource.of(..., consume=True))
     values = mapped_empty(dist.values.shape, np.float32)
     _hfrep_values(dist.values, dist.active, result.inside, rows, frep.values, frep.active, table,
                   STEPS.index(step), float(slope), np.float32(-dist.background), values)
@@ -119,23 +119,6 @@ def _hfrep_values(dist, active, inside, rows, f, fact, table, mode, slope, outsi
                         else:
                             s = table[r, i, j, k]
                     out[b, i, j, k] = s * dist[b, i, j, k]
-
-
-def hfrep_grid(hf: BlockGrid, name: str = "hfrep", consume: bool = False):
-    """The ``hfrep`` FloatGrid of :func:`hfrep_blocks`' blocks: what ``pipeline.sparse.grid.frep_to_vdb``
-    makes of them without boxes (its steps: write the level-set-signed values, sign flood
-    fill, negate the active values, swap the background to -bg), written a batch at a time.
-    ``consume``: the blocks are released as they are written (not to be read afterwards)."""
-    bg = abs(float(hf.background))
-    grid = vdb.FloatGrid(bg)
-    grid.name = name
-    grid.transform = linear_transform(hf.voxel_size)
-    write_leaves(grid, hf, scale=-1.0, consume=consume)
-    grid.signedFloodFill()
-    negate_active(grid)
-    grid.background = -bg  # swaps +bg <-> -bg on inactive values and tiles
-    grid.prune()
-    return grid
 
 
 class HFRepField:
@@ -185,14 +168,16 @@ class HFRepField:
     __call__ = evaluate
 
 
-def density_grid(res, ramp: float, tiles: tuple[np.ndarray, np.ndarray] | None = None):
-    """Fog volume: 1 inside deeper than ``ramp``, falling linearly to 0 at the surface. The
-    inside voxels a limited fine solve left unsolved (``res.deep_rows``, deeper than the limit,
-    which is at least the ramp) are 1. Blocks that are 1 throughout are written as active
-    tiles (what ``prune`` would make of them), the others as leaves; only those leaves' values
-    are ever held (a first pass finds the blocks that are 1 throughout). ``tiles``: (origins,
-    values) of more leaf tiles (the coarse interior), written with those of 1 in one pass, so
-    that solid regions of 1 become a few boxes (hfim.fill_tiles)."""
+def density_leaves(res, ramp: float, tiles: tuple[np.ndarray, np.ndarray] | None = None,
+                   ) -> tuple[LeafSource, np.ndarray, np.ndarray]:
+    """The ``density`` fog volume (pipeline.io.vdbgrids.fog_grid) as (leaves, tile origins, tile
+    values): 1 inside deeper than ``ramp``, falling linearly to 0 at the surface. The inside
+    voxels a limited fine solve left unsolved (``res.deep_rows``, deeper than the limit, which
+    is at least the ramp) are 1. Blocks that are 1 throughout become active tiles (what
+    ``prune`` would make of them), the others leaves, made a batch at a time as they are
+    written (a first pass finds the blocks that are 1 throughout). ``tiles``: (origins, values)
+    of more leaf tiles (the coarse interior), merged with those of 1 into one list in key
+    order, so that solid regions of 1 become a few boxes (vdbgrids.fill_tiles)."""
     d = res.distance
     n = len(d.origins)
     deep = np.full(n, -1, np.int64)  # row of each block in deep_mask, -1 for none
@@ -202,14 +187,9 @@ def density_grid(res, ramp: float, tiles: tuple[np.ndarray, np.ndarray] | None =
     ramp32 = np.float32(ramp)
     ones = _all_one(d.values, d.active, res.inside, deep, deep_mask, ramp32)
     leaves = np.flatnonzero(~ones)
-    grid = vdb.FloatGrid(0.0)
-    grid.name = "density"
-    grid.transform = linear_transform(d.voxel_size)
-    grid.gridClass = vdb.GridClass.FOG_VOLUME
 
     def fill(lo, hi, values, active):  # active where > 0
         _density(d.values, d.active, res.inside, deep, deep_mask, ramp32, leaves[lo:hi], values, active)
-    write_batched(grid, d.origins[leaves], fill)
 
     origins, t_v, pos = d.origins[ones], np.zeros(0, np.float32), np.zeros(0, np.int64)
     if tiles is not None:  # both lists in key order: merged, not sorted (8.6M rows at 2048^3)
@@ -221,9 +201,7 @@ def density_grid(res, ramp: float, tiles: tuple[np.ndarray, np.ndarray] | None =
         origins, pos = merge_sorted(origins, t_o)
     values = np.ones(len(origins), np.float32)
     values[pos] = t_v
-    fill_tiles(grid, origins, values, merge_value=1.0)
-    grid.prune()
-    return grid
+    return LeafSource(d.voxel_size, 0.0, d.origins[leaves], fill=fill), origins, values
 
 
 @njit(cache=True, inline="always")

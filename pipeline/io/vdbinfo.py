@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.sparse.grid import vdb
+from pipeline.io.vdbgrids import vdb
 
 _SKIP_META = {"name", "class"}  # shown in the grid's header line
 

@@ -11,13 +11,15 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pipeline.sparse.grid import vdb
+from pipeline.io.vdbgrids import vdb
 from pipeline.util.atomic import atomic_path
+from pipeline.util.errors import InputError
 
 HALF_EXACT_INT = 2048  # largest integer below which every integer is exact in IEEE half precision
 _INT64 = (-(2**63), 2**63 - 1)
@@ -134,3 +136,60 @@ def write_vdb(
         for g, flag in zip(grids, saved, strict=True):
             g.saveFloatAsHalf = flag
     return path
+
+
+def read_grids(path: str | os.PathLike) -> dict:
+    """Every grid of a .vdb file by name (OpenVDB's own errors, plain RuntimeErrors, pass up)."""
+    return {g.name: g for g in vdb.readAll(str(path))[0]}
+
+
+@dataclass
+class DenseGrid:
+    """A float grid read from a .vdb file as a dense array over its active bounding box grown by
+    one voxel: ``values[i - lo]`` is voxel i (background where nothing is stored);
+    ``origin`` + ``axes`` @ i is voxel i's world position (the grid's linear transform)."""
+
+    values: np.ndarray
+    lo: np.ndarray
+    background: float
+    level_set: bool
+    origin: np.ndarray
+    axes: np.ndarray
+
+
+def read_dense(path: Path, name: str | None, max_voxels: int) -> DenseGrid:
+    """The float grid ``name`` (default: the first float grid) of a .vdb file, densely; an
+    InputError for a missing or unreadable file, a missing or non-float grid, or an active
+    bounding box of more than ``max_voxels``."""
+    grid = _read_grid(path, name)
+    bbox = grid.evalActiveVoxelBoundingBox()
+    lo = np.asarray(bbox[0], np.int64) - 1
+    hi = np.asarray(bbox[1], np.int64) + 1
+    dims = hi - lo + 1
+    if np.prod(dims.astype(float)) > max_voxels:
+        raise InputError(f"{path}: the active bounding box {dims.tolist()} is too large to sample")
+    dense = np.zeros(tuple(int(d) for d in dims), np.float32)
+    grid.copyToArray(dense, tuple(int(c) for c in lo))
+    o = np.asarray(grid.transform.indexToWorld((0, 0, 0)))
+    axes = np.stack([np.asarray(grid.transform.indexToWorld(tuple(e))) - o for e in np.eye(3)], axis=1)
+    return DenseGrid(dense, lo, float(grid.background), grid.gridClass == vdb.GridClass.LEVEL_SET, o, axes)
+
+
+def _read_grid(path: Path, name: str | None):
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    try:
+        grids, _ = vdb.readAll(str(path))
+    except Exception as e:  # pyopenvdb raises plain RuntimeError/IOError for bad files
+        raise InputError(f"{path}: cannot read as a .vdb file ({e})") from None
+    floats = [g for g in grids if g.valueTypeName == "float"]
+    if name is not None:
+        found = [g for g in grids if g.name == name]
+        if not found:
+            raise InputError(f"{path}: no grid named {name!r} (grids: {[g.name for g in grids]})")
+        if found[0].valueTypeName != "float":
+            raise InputError(f"{path}: grid {name!r} is {found[0].valueTypeName}, not float")
+        return found[0]
+    if not floats:
+        raise InputError(f"{path}: no float grid in the file")
+    return floats[0]

@@ -1026,7 +1026,7 @@ def _check_memory(job: Job, ctx: _Ctx, base: tuple = ()) -> None:
     stage that makes the narrow band estimates it (after the memory of the estimate itself),
     then every stage estimates its own peak from it (``estimate_bytes``, stages.base; kept in
     ``job.memory_estimate``, which the runner writes into the manifest); the largest must fit."""
-    maker = next(((n, p) for n, p in job.stages if FrepBand in getattr(STAGES[n], "PRODUCES", ())), None)
+    maker = next(((n, p) for n, p in job.stages if n in _producers([FrepBand])), None)
     if maker is None or job.domain.dims.max() < 512:
         return  # small domains always fit: 512^3 voxels of band would be ~3 GiB
     avail = _available_memory()

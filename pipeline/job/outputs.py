@@ -32,7 +32,7 @@ import unicodedata
 from collections.abc import Iterable
 from pathlib import Path
 
-from pipeline.io.vdbio import vdb
+from pipeline.io.vdbio import read_grids
 from pipeline.util.atomic import write_json
 from pipeline.util.errors import ConfigError
 
@@ -259,7 +259,7 @@ def _vdb_problem(path: Path, grids: dict) -> str | None:
     """The file opens, and holds every in-memory grid with its active voxel count."""
 
     try:
-        read = {g.name: g for g in vdb.readAll(str(path))[0]}
+        read = read_grids(path)
     except Exception as e:  # noqa: BLE001 - OpenVDB raises plain RuntimeErrors/KeyErrors here
         return f"does not open as a .vdb ({str(e)[:120]})"
     for name, g in grids.items():

@@ -12,6 +12,7 @@ import shutil
 import time
 from pathlib import Path
 
+from pipeline.io.vdbgrids import grid_stats
 from pipeline.job.config import Job, input_error_path, line_of, locate_nonfinite
 from pipeline.job.context import JobContext
 from pipeline.job.outputs import (
@@ -26,7 +27,6 @@ from pipeline.job.outputs import (
     verify_outputs,
     write_failure,
 )
-from pipeline.sparse.grid import grid_stats
 from pipeline.util.atomic import write_json
 from pipeline.util.errors import ConfigError, InputError, interrupted
 from pipeline.voxel.voxelise import NonFiniteField

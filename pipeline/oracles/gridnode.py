@@ -12,9 +12,8 @@ from pydantic import Field
 from scipy import ndimage
 
 from pipeline.field.affine import AffineForm
+from pipeline.io.vdbio import read_dense
 from pipeline.model.base import Node, Params, register
-from pipeline.sparse.grid import vdb
-from pipeline.util.errors import InputError
 
 MAX_DENSE = 512**3  # voxels of the active bounding box we are prepared to hold densely
 
@@ -37,23 +36,13 @@ class GridNode(Node):
 
     def __init__(self, params, where=""):
         super().__init__(params, where)
-        grid = _read_grid(Path(params.path), params.name)
-        flip = params.sign == "levelset" or (params.sign == "auto" and grid.gridClass == vdb.GridClass.LEVEL_SET)
+        dense = read_dense(Path(params.path), params.name, MAX_DENSE)
+        flip = params.sign == "levelset" or (params.sign == "auto" and dense.level_set)
         s = (-1.0 if flip else 1.0) * params.scale
-        self.background = s * float(grid.background)
-        bbox = grid.evalActiveVoxelBoundingBox()
-        lo = np.asarray(bbox[0], np.int64) - 1
-        hi = np.asarray(bbox[1], np.int64) + 1
-        dims = hi - lo + 1
-        if np.prod(dims.astype(float)) > MAX_DENSE:
-            raise InputError(f"{params.path}: the active bounding box {dims.tolist()} is too large to sample")
-        dense = np.zeros(tuple(int(d) for d in dims), np.float32)
-        grid.copyToArray(dense, tuple(int(c) for c in lo))
-        self.values = (s * dense).astype(np.float64)
-        self.lo = lo
-        o = np.asarray(grid.transform.indexToWorld((0, 0, 0)))
-        A = np.stack([np.asarray(grid.transform.indexToWorld(tuple(e))) - o for e in np.eye(3)], axis=1)
-        self._o, self._Ainv = o, np.linalg.inv(A)
+        self.background = s * dense.background
+        self.values = (s * dense.values).astype(np.float64)
+        self.lo = dense.lo
+        self._o, self._Ainv = dense.origin, np.linalg.inv(dense.axes)
 
     def _to_index(self, pts: np.ndarray) -> np.ndarray:
         """World points (N,3) -> continuous coordinates in the dense array."""
@@ -109,21 +98,3 @@ def _range_over_boxes(v, ilo, ihi, bg):
     return flo, fhi
 
 
-def _read_grid(path: Path, name: str | None):
-    if not path.exists():
-        raise InputError(f"{path}: no such file")
-    try:
-        grids, _ = vdb.readAll(str(path))
-    except Exception as e:  # pyopenvdb raises plain RuntimeError/IOError for bad files
-        raise InputError(f"{path}: cannot read as a .vdb file ({e})") from None
-    floats = [g for g in grids if g.valueTypeName == "float"]
-    if name is not None:
-        found = [g for g in grids if g.name == name]
-        if not found:
-            raise InputError(f"{path}: no grid named {name!r} (grids: {[g.name for g in grids]})")
-        if found[0].valueTypeName != "float":
-            raise InputError(f"{path}: grid {name!r} is {found[0].valueTypeName}, not float")
-        return found[0]
-    if not floats:
-        raise InputError(f"{path}: no float grid in the file")
-    return floats[0]

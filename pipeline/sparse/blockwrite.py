@@ -1,18 +1,20 @@
-"""Memory for the large block arrays of the hfrep stage, and writing blocks as they are consumed.
+"""Memory for the large block arrays of the hfrep stage, and leaves handed to a writer as they are made.
 
 :func:`mapped_empty` puts an array on its own anonymous mapping so that :func:`release_rows`
-can give its leading rows back to the OS once they are written; :func:`write_leaves` writes a
-``BlockGrid`` through :func:`pipeline.sparse.grid.write_batched` (runs of leaves laid out by a compiled
-pass, a batch at a time) and can release the blocks as it goes.
+can give its leading rows back to the OS once they are written; a :class:`LeafSource` is the
+leaves of a grid as the writer (pipeline.io.vdbgrids) takes them: made a batch at a time by a
+``fill`` callback, or held whole, and released (``done``) as they are written.
 """
 
 from __future__ import annotations
 
 import mmap
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.sparse.grid import BlockGrid, write_batched
+from pipeline.sparse.grid import BlockGrid
 
 
 def mapped_empty(shape, dtype) -> np.ndarray:
@@ -49,11 +51,28 @@ def release_rows(arr: np.ndarray, rows: int, start: int = 0) -> None:
         base.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
 
 
-def write_leaves(grid, blocks: BlockGrid, scale: float = 1.0, batch: int | None = None, consume: bool = False) -> None:
-    """:func:`pipeline.sparse.grid.write_blocks` (the same grid) through :func:`write_batched`.
-    ``consume``: release the blocks' values and active flags as they are written (arrays from
-    :func:`mapped_empty`; ``blocks`` must not be read afterwards)."""
-    def done(hi):
-        release_rows(blocks.values, hi)
-        release_rows(blocks.active, hi)
-    write_batched(grid, blocks.origins, None, scale, batch, (blocks.values, blocks.active), done if consume else None)
+@dataclass
+class LeafSource:
+    """The 8^3 leaves of one grid as a writer takes them, a batch at a time.
+
+    ``origins``: (L, 3), sorted as a BlockGrid keeps them. Either ``fill(lo, hi, values,
+    active)`` puts leaves lo..hi-1 into the (hi - lo, 8, 8, 8) float32 / bool arrays it is given,
+    or ``arrays`` = (values, active) holds every leaf. ``done(hi)``, when given, is called once
+    leaves ..hi-1 are written (to release what made them). ``background``: the grid's."""
+
+    voxel_size: float
+    background: float
+    origins: np.ndarray
+    fill: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None
+    arrays: tuple[np.ndarray, np.ndarray] | None = None
+    done: Callable[[int], None] | None = None
+
+    @classmethod
+    def of(cls, blocks: BlockGrid, consume: bool = False) -> LeafSource:
+        """The leaves of ``blocks``; ``consume``: release its values and active flags as they are
+        written (arrays from :func:`mapped_empty`; ``blocks`` must not be read afterwards)."""
+        def done(hi: int) -> None:
+            release_rows(blocks.values, hi)
+            release_rows(blocks.active, hi)
+        return cls(blocks.voxel_size, blocks.background, blocks.origins, arrays=(blocks.values, blocks.active),
+                   done=done if consume else None)

@@ -24,8 +24,8 @@ def outputs(tmp_path_factory) -> dict:
     from test_export_files import VOXEL, sample_grids, sample_manifest
 
     from pipeline.io import previews, report, vtkio
+    from pipeline.io.vdbgrids import vdb
     from pipeline.io.vdbio import set_grid_metadata, write_vdb
-    from pipeline.sparse.grid import vdb
 
     out = tmp_path_factory.mktemp("spheres")
     grids = sample_grids()

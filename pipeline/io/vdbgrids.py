@@ -125,14 +125,8 @@ def frep_to_vdb(blocks: BlockGrid, inside_boxes: np.ndarray, name: str = "frep",
       sign, and leaves cut by the domain's faces (whose voxels beyond the domain carry no sign,
       so the scan lines may cross them) are read back and every voxel of the wrong sign is set.
     """
+    grid = _frep_signed(blocks, name)
     bg = abs(float(blocks.background))
-    grid = vdb.FloatGrid(bg)
-    grid.name = name
-    grid.transform = linear_transform(blocks.voxel_size)
-    write_leaves(grid, blocks, scale=-1.0)
-    grid.signedFloodFill()
-    negate_active(grid)
-    grid.background = -bg  # swaps +bg <-> -bg on inactive values and tiles
     has_active = leaf_has_active(blocks.active)
     _fill_boxes(grid, coalesce_boxes(_boxes_to_fill(blocks, inside_boxes, has_active)), bg)
     if outside_boxes is not None:
@@ -204,28 +198,39 @@ def _boxes_to_fill(blocks: BlockGrid, inside_boxes: np.ndarray, leaf_active: np.
 
 
 def frep_grid_of_leaves(leaves: LeafSource | BlockGrid, name: str):
-    """:func:`frep_to_vdb` of leaves without boxes (their signs all carried by the leaves), a
-    batch at a time: write the level-set-signed values, sign flood fill, negate the active
-    values, swap the background to -bg (the ``hfrep`` grid)."""
+    """:func:`frep_to_vdb` of leaves without boxes (their signs all carried by the leaves),
+    written a batch at a time (the ``hfrep`` grid)."""
+    grid = _frep_signed(leaves, name)
+    grid.prune()
+    return grid
+
+
+def _frep_signed(leaves: LeafSource | BlockGrid, name: str):
+    """The FRep-signed grid of leaves before any box fill: the level-set-signed values written
+    (background +bg), sign flood fill, the active values negated, the background swapped to -bg."""
     bg = abs(float(leaves.background))
-    grid = vdb.FloatGrid(bg)
-    grid.name = name
-    grid.transform = linear_transform(leaves.voxel_size)
+    grid = _new_grid(name, leaves.voxel_size, bg)
     write_leaves(grid, leaves, scale=-1.0)
     grid.signedFloodFill()
     negate_active(grid)
     grid.background = -bg  # swaps +bg <-> -bg on inactive values and tiles
-    grid.prune()
+    return grid
+
+
+def _new_grid(name: str, voxel_size: float, background: float, grid_class=None):
+    """An empty FloatGrid with our transform (voxel centres at integer multiples of the size)."""
+    grid = vdb.FloatGrid(float(background))
+    grid.name = name
+    grid.transform = linear_transform(voxel_size)
+    if grid_class is not None:
+        grid.gridClass = grid_class
     return grid
 
 
 def level_set_grid(leaves: LeafSource | BlockGrid, name: str):
     """A LEVEL_SET FloatGrid (negative inside) of signed leaves, background +|bg|, the signs of
     tiles and inactive voxels set by OpenVDB's signedFloodFill (the ``surface`` grid)."""
-    grid = vdb.FloatGrid(abs(float(leaves.background)))
-    grid.name = name
-    grid.transform = linear_transform(leaves.voxel_size)
-    grid.gridClass = vdb.GridClass.LEVEL_SET
+    grid = _new_grid(name, leaves.voxel_size, abs(float(leaves.background)), vdb.GridClass.LEVEL_SET)
     write_leaves(grid, leaves)
     grid.signedFloodFill()
     grid.prune()
@@ -237,11 +242,7 @@ def tiled_grid(blocks: BlockGrid, tiles: list[tuple[np.ndarray, np.ndarray, int]
     """A FloatGrid of fine leaves and active constant tiles ``(origins, values, cell)`` (a
     hierarchical distance: leaf-sized and 128^3 tiles), background ``blocks.background``;
     class LEVEL_SET when ``level_set``. ``grid.fill`` over whole nodes makes tiles."""
-    grid = vdb.FloatGrid(float(blocks.background))
-    grid.name = name
-    grid.transform = linear_transform(blocks.voxel_size)
-    if level_set:
-        grid.gridClass = vdb.GridClass.LEVEL_SET
+    grid = _new_grid(name, blocks.voxel_size, blocks.background, vdb.GridClass.LEVEL_SET if level_set else None)
     for origins, values, cell in tiles:
         for o, v in zip(np.asarray(origins).tolist(), np.asarray(values).tolist(), strict=True):
             grid.fill(tuple(o), tuple(x + cell - 1 for x in o), float(v), True)
@@ -252,10 +253,7 @@ def tiled_grid(blocks: BlockGrid, tiles: list[tuple[np.ndarray, np.ndarray, int]
 def fog_grid(leaves: LeafSource, tile_origins: np.ndarray, tile_values: np.ndarray, name: str):
     """A FOG_VOLUME FloatGrid (background 0) of leaves and active leaf-sized tiles; tiles of
     value 1 are merged into boxes (:func:`fill_tiles`), so a solid interior costs a few calls."""
-    grid = vdb.FloatGrid(0.0)
-    grid.name = name
-    grid.transform = linear_transform(leaves.voxel_size)
-    grid.gridClass = vdb.GridClass.FOG_VOLUME
+    grid = _new_grid(name, leaves.voxel_size, 0.0, vdb.GridClass.FOG_VOLUME)
     write_leaves(grid, leaves)
     fill_tiles(grid, tile_origins, tile_values, merge_value=1.0)
     grid.prune()
@@ -265,9 +263,7 @@ def fog_grid(leaves: LeafSource, tile_origins: np.ndarray, tile_values: np.ndarr
 def float_grid(leaves: LeafSource | BlockGrid, name: str, background: float | None = None):
     """A plain FloatGrid of leaves (the ``component`` labels), background ``background``
     (default ``leaves.background``)."""
-    grid = vdb.FloatGrid(float(leaves.background if background is None else background))
-    grid.name = name
-    grid.transform = linear_transform(leaves.voxel_size)
+    grid = _new_grid(name, leaves.voxel_size, leaves.background if background is None else background)
     write_leaves(grid, leaves)
     return grid
 

@@ -392,29 +392,30 @@ def closest_point_distance(f0, g, hess, iterations=12):
     Chopp (2001) closest-point iteration: a Newton step onto q = 0 along grad q plus the step
     that removes the tangential part of (origin - x). Returns inf when it does not converge.
     """
-    x = np.zeros(3)
-    gx = np.empty(3)
+    x0 = x1 = x2 = 0.0  # scalars, not arrays: this runs for every voxel next to the surface
     step = np.inf
     for _ in range(iterations):
-        for a in range(3):
-            gx[a] = g[a] + hess[a, 0] * x[0] + hess[a, 1] * x[1] + hess[a, 2] * x[2]
+        g0 = g[0] + hess[0, 0] * x0 + hess[0, 1] * x1 + hess[0, 2] * x2
+        g1 = g[1] + hess[1, 0] * x0 + hess[1, 1] * x1 + hess[1, 2] * x2
+        g2_ = g[2] + hess[2, 0] * x0 + hess[2, 1] * x1 + hess[2, 2] * x2
         qx = f0
-        for a in range(3):
-            qx += x[a] * (g[a] + 0.5 * (hess[a, 0] * x[0] + hess[a, 1] * x[1] + hess[a, 2] * x[2]))
-        g2 = gx[0] * gx[0] + gx[1] * gx[1] + gx[2] * gx[2]
-        if g2 == 0.0:
+        qx += x0 * (g[0] + 0.5 * (hess[0, 0] * x0 + hess[0, 1] * x1 + hess[0, 2] * x2))
+        qx += x1 * (g[1] + 0.5 * (hess[1, 0] * x0 + hess[1, 1] * x1 + hess[1, 2] * x2))
+        qx += x2 * (g[2] + 0.5 * (hess[2, 0] * x0 + hess[2, 1] * x1 + hess[2, 2] * x2))
+        gg = g0 * g0 + g1 * g1 + g2_ * g2_
+        if gg == 0.0:
             return np.inf
-        yg = -(x[0] * gx[0] + x[1] * gx[1] + x[2] * gx[2])
-        step = 0.0
-        for a in range(3):
-            delta = -qx * gx[a] / g2 + (-x[a] - yg * gx[a] / g2)
-            x[a] += delta
-            step += delta * delta
+        yg = -(x0 * g0 + x1 * g1 + x2 * g2_)
+        d0 = -qx * g0 / gg + (-x0 - yg * g0 / gg)
+        d1 = -qx * g1 / gg + (-x1 - yg * g1 / gg)
+        d2 = -qx * g2_ / gg + (-x2 - yg * g2_ / gg)
+        x0, x1, x2 = x0 + d0, x1 + d1, x2 + d2
+        step = d0 * d0 + d1 * d1 + d2 * d2
         if step < 1e-24:
             break
     if step > 1e-12:
         return np.inf
-    return math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
+    return math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
 
 
 def init_interface(f, fact, d, state, nbr27, quadric, brow=None):

@@ -375,7 +375,9 @@ def _fill_runs(grid, o: np.ndarray, v: np.ndarray, starts: np.ndarray, ends: np.
     fill = grid.fill
     for c in range(0, len(starts), FILL_CHUNK):  # a chunk's lists at a time: 7.6M at once is ~2 GB of objects
         s, e = starts[c:c + FILL_CHUNK], ends[c:c + FILL_CHUNK]
-        for (i, j, k), kk, x in zip(idx[s].tolist(), idx[e, 2].tolist(), v[s].astype(float).tolist(), strict=True):
+        # flat lists per column: a list of rows makes an inner list per tile (0.86 -> 0.55 s at 0.9M tiles)
+        cols = (idx[s, 0].tolist(), idx[s, 1].tolist(), idx[s, 2].tolist(), idx[e, 2].tolist(), v[s].tolist())
+        for i, j, k, kk, x in zip(*cols, strict=True):
             fill((x0[i], y0[j], z0[k]), (x1[i], y1[j], z1[kk]), x, True)
 
 

@@ -668,7 +668,7 @@ def mark_band(v: np.ndarray, valid: np.ndarray, h: float, band: float) -> tuple[
     out = np.zeros(v.shape, dtype=np.bool_)
     first = np.full(n, -1, np.int64)
     for q in prange(n):
-        first[q] = _mark_block(v, valid, q, h, band, out)
+        first[q] = _mark_block(v, valid, q, h, band, out, np.empty(v.shape[1:]))
     for q in range(n):
         if first[q] >= 0:
             return out, first[q]
@@ -676,12 +676,12 @@ def mark_band(v: np.ndarray, valid: np.ndarray, h: float, band: float) -> tuple[
 
 
 @njit(cache=True)
-def _mark_block(v, valid, q, h, band, out) -> int:
-    """Band mask of block q into out[q]; the flat index of its first valid non-finite value or -1."""
+def _mark_block(v, valid, q, h, band, out, blk) -> int:
+    """Band mask of block q into out[q]; the flat index of its first valid non-finite value or -1.
+    ``blk``: a (b, b, b) work array (allocated once per caller: this runs per evaluated block)."""
     b = v.shape[1]
     lim = band * h
     m = b * b * b
-    blk = np.empty((b, b, b))
     bad = -1
     for i in range(b):
         for j in range(b):
@@ -735,6 +735,7 @@ def eval_mark_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c
         bv = np.empty((1, block, block, block))
         bok = np.empty((1, block, block, block), np.bool_)
         bact = np.empty((1, block, block, block), np.bool_)
+        bwork = np.empty((block, block, block))
         first = -1
         for r in range(ch * per, min(nl, (ch + 1) * per)):
             values[r] = outside
@@ -750,7 +751,7 @@ def eval_mark_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c
                             bok[0, i, j, k] = (imin[0] <= origins[q, 0] + i <= imax[0]
                                                and imin[1] <= origins[q, 1] + j <= imax[1]
                                                and imin[2] <= origins[q, 2] + k <= imax[2])
-                w = _mark_block(bv, bok, 0, h, band, bact)
+                w = _mark_block(bv, bok, 0, h, band, bact, bwork)
                 if w >= 0 and (first < 0 or q * m + w < first):
                     first = q * m + w
                 oi, oj, ok = origins[q, 0] & 7, origins[q, 1] & 7, origins[q, 2] & 7

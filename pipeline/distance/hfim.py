@@ -42,7 +42,7 @@ from scipy import ndimage
 
 from pipeline.distance.eikonal import SECOND_ORDER_VISITS, EikonalResult, solve_distance
 from pipeline.distance.fim import EXCLUDED, FREE, FROZEN, fim, upwind3
-from pipeline.sparse.access import block_neighbours27
+from pipeline.sparse.access import FACES6, block_neighbours, block_neighbours27, load_ghosts
 from pipeline.sparse.grid import LEAF, BlockGrid
 
 LEVEL_CELLS = (8, 128)  # cell edge in voxels of levels 1, 2: an OpenVDB leaf and an internal-node child
@@ -457,17 +457,19 @@ def fill_deep(blocks, fine: EikonalResult, fill: np.ndarray, sign: float = 1.0) 
     rows, mask = fine.deep_rows, fine.deep_mask
     dist = fine.distance
     limit = fine.stats.get("inside_distance", 0.0) / h
-    steps = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]]) * LEAF
-    nbr = np.stack([dist.block_index(dist.origins[rows] + s) for s in steps], axis=1)
+    nbr = block_neighbours(dist)
     if np.shares_memory(blocks.values, dist.values) or np.shares_memory(blocks.active, dist.active):
         raise ValueError("fill_deep writes blocks while it reads fine.distance: give it a copy")
     _shell_fill(dist.values, dist.active, fine.inside, rows, nbr, mask, fill / h, limit, 1.0 / h, sign * h,
                 blocks.values, blocks.active)
 
 
+_SAME_ROWS = np.zeros(0, np.int64)  # load_ghosts: block n is row n
+
+
 @njit(cache=True, parallel=True)
 def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, scale, out_v, out_a):
-    """Per deep block t (block ``rows[t]``, face neighbours ``nbr[t]``), at its ``mask[t]``
+    """Per deep block t (block ``rows[t]``; ``nbr``: the face table of every block), at its ``mask[t]``
     voxels: d = min over the solved inside voxels of the block and of its neighbours' face
     layers that touch a mask voxel of (value * inv_h + Euclidean distance in voxels), and of
     ``fallback[t]`` + the distance to the leaf centre; at least ``limit``. Where d is finite,
@@ -476,32 +478,15 @@ def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, s
         b = rows[t]
         buf = np.empty((10, 10, 10))
         ok = np.zeros((10, 10, 10), np.bool_)
+        ins = np.zeros((10, 10, 10), np.bool_)
         cand = np.empty((1000, 4))
-        for i in range(8):
-            for j in range(8):
-                for k in range(8):
-                    buf[i + 1, j + 1, k + 1] = vals[b, i, j, k]
-                    ok[i + 1, j + 1, k + 1] = active[b, i, j, k] and inside[b, i, j, k]
-        for u in range(8):
-            for v in range(8):
-                for f in range(6):
-                    n = nbr[t, f]
-                    if n < 0:
-                        continue
-                    if f == 0:
-                        a, bb, c, si, sj, sk = 0, u + 1, v + 1, 7, u, v
-                    elif f == 1:
-                        a, bb, c, si, sj, sk = 9, u + 1, v + 1, 0, u, v
-                    elif f == 2:
-                        a, bb, c, si, sj, sk = u + 1, 0, v + 1, u, 7, v
-                    elif f == 3:
-                        a, bb, c, si, sj, sk = u + 1, 9, v + 1, u, 0, v
-                    elif f == 4:
-                        a, bb, c, si, sj, sk = u + 1, v + 1, 0, u, v, 7
-                    else:
-                        a, bb, c, si, sj, sk = u + 1, v + 1, 9, u, v, 0
-                    buf[a, bb, c] = vals[n, si, sj, sk]
-                    ok[a, bb, c] = active[n, si, sj, sk] and inside[n, si, sj, sk]
+        # the block and its six face layers: a voxel counts where it is solved and inside
+        load_ghosts(vals, active, _SAME_ROWS, nbr, FACES6, b, 1, 0.0, buf, ok)
+        load_ghosts(inside, inside, _SAME_ROWS, nbr, FACES6, b, 1, False, ins, ins)
+        for i in range(10):
+            for j in range(10):
+                for k in range(10):
+                    ok[i, j, k] = ok[i, j, k] and ins[i, j, k]
         m = 0
         for i in range(10):
             for j in range(10):

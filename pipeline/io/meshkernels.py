@@ -12,7 +12,7 @@ occurrence instead of byte order.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 _EMPTY = -1
 
@@ -25,42 +25,68 @@ def _hash3(a: np.uint64, b: np.uint64, c: np.uint64) -> np.uint64:
     return h ^ (h >> np.uint64(29))
 
 
-@njit(cache=True)
+_SHARD_BITS = 6  # unique_rows_first: 64 hash tables of a few MB each (cache-sized at 10M points)
+
+
+@njit(cache=True, parallel=True)
 def unique_rows_first(bits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(rep, first) for rows of ``bits`` (N,3) uint32: ``rep[i]`` is the rank of row i's first
     occurrence among the distinct rows, ``first`` the index of each distinct row's first occurrence.
 
-    Open addressing; a slot holds a 31-bit fingerprint of the hash and the rank, so a probe
-    reads one cache line and the rows are compared only when the fingerprints agree."""
+    The rows are split by the top bits of their hash into shards, each with its own open-addressing
+    table (slots hold the row index of a first occurrence), filled in parallel in increasing row
+    order, so every row finds its first occurrence; the ranks then follow in one ordered pass.
+    Equal rows have equal hashes, so they always meet in one shard."""
     n = bits.shape[0]
-    size = 1
-    while size < 2 * n + 2:
-        size *= 2
-    mask = np.uint64(size - 1)
-    table = np.full(size, _EMPTY, np.int64)  # slot -> fingerprint << 32 | distinct row rank
-    first = np.empty(n, np.int64)
-    rep = np.empty(n, np.int64)
-    count = 0
-    low = np.int64(0xFFFFFFFF)
+    hashes = np.empty(n, np.uint64)
+    for i in prange(n):
+        hashes[i] = _hash3(np.uint64(bits[i, 0]), np.uint64(bits[i, 1]), np.uint64(bits[i, 2]))
+    nshard = 1 << _SHARD_BITS
+    shift = np.uint64(64 - _SHARD_BITS)
+    starts = np.zeros(nshard + 1, np.int64)
     for i in range(n):
-        h = _hash3(np.uint64(bits[i, 0]), np.uint64(bits[i, 1]), np.uint64(bits[i, 2]))
-        fp = np.int64((h >> np.uint64(33)) & np.uint64(0x7FFFFFFF))
-        slot = h & mask
-        while True:
-            e = table[slot]
-            if e == _EMPTY:
-                table[slot] = (fp << 32) | count
-                first[count] = i
-                rep[i] = count
-                count += 1
-                break
-            if (e >> 32) == fp:
-                r = e & low
-                f = first[r]
-                if bits[f, 0] == bits[i, 0] and bits[f, 1] == bits[i, 1] and bits[f, 2] == bits[i, 2]:
-                    rep[i] = r
+        starts[np.int64(hashes[i] >> shift) + 1] += 1
+    for sh in range(nshard):
+        starts[sh + 1] += starts[sh]
+    pos = starts[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):  # increasing i within each shard
+        sh = np.int64(hashes[i] >> shift)
+        order[pos[sh]] = i
+        pos[sh] += 1
+    firstidx = np.empty(n, np.int64)
+    for sh in prange(nshard):
+        lo, hi = starts[sh], starts[sh + 1]
+        size = 1
+        while size < 2 * (hi - lo) + 2:
+            size *= 2
+        mask = np.uint64(size - 1)
+        table = np.full(size, _EMPTY, np.int64)
+        for q in range(lo, hi):
+            i = order[q]
+            slot = hashes[i] & mask
+            while True:
+                e = table[slot]
+                if e == _EMPTY:
+                    table[slot] = i
+                    firstidx[i] = i
                     break
-            slot = (slot + np.uint64(1)) & mask
+                if hashes[e] == hashes[i] and bits[e, 0] == bits[i, 0] and bits[e, 1] == bits[i, 1] \
+                        and bits[e, 2] == bits[i, 2]:
+                    firstidx[i] = e
+                    break
+                slot = (slot + np.uint64(1)) & mask
+    rep = np.empty(n, np.int64)
+    first = np.empty(n, np.int64)
+    count = 0
+    for i in range(n):  # a first occurrence precedes its repeats: their rank is known by then
+        f = firstidx[i]
+        if f == i:
+            rep[i] = count
+            first[count] = i
+            count += 1
+        else:
+            rep[i] = rep[f]
     return rep, first[:count].copy()
 
 
@@ -73,23 +99,28 @@ def _nonzero_area(p: np.ndarray, a: int, b: int, c: int) -> bool:
     return (uy * vz - uz * vy) != 0.0 or (uz * vx - ux * vz) != 0.0 or (ux * vy - uy * vx) != 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def weld_kernel(points: np.ndarray, bits: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Merge bit-identical float32 points (``bits``: the points viewed as uint32), drop zero-area
     triangles (float64 cross product of the merged points, exactly zero), drop unused points.
-    Returns (points, triangles)."""
+    Returns (points, triangles). The per-triangle tests and the outputs are parallel passes; the
+    used points and the output rows are counted in order, so the result does not depend on the
+    threads."""
     rep, first = unique_rows_first(bits)
     m = triangles.shape[0]
     keep = np.zeros(m, np.bool_)
+    for t in prange(m):
+        a, b, c = rep[triangles[t, 0]], rep[triangles[t, 1]], rep[triangles[t, 2]]
+        keep[t] = _nonzero_area(points, first[a], first[b], first[c])
     used = np.zeros(len(first), np.bool_)
+    row_of = np.empty(m, np.int64)
     kept = 0
     for t in range(m):
-        a, b, c = rep[triangles[t, 0]], rep[triangles[t, 1]], rep[triangles[t, 2]]
-        if _nonzero_area(points, first[a], first[b], first[c]):
-            keep[t] = True
-            used[a] = True
-            used[b] = True
-            used[c] = True
+        row_of[t] = kept
+        if keep[t]:
+            used[rep[triangles[t, 0]]] = True
+            used[rep[triangles[t, 1]]] = True
+            used[rep[triangles[t, 2]]] = True
             kept += 1
     remap = np.full(len(first), -1, np.int64)
     count = 0
@@ -98,16 +129,14 @@ def weld_kernel(points: np.ndarray, bits: np.ndarray, triangles: np.ndarray) -> 
             remap[u] = count
             count += 1
     out_pts = np.empty((count, 3), np.float32)
-    for u in range(len(first)):
+    for u in prange(len(first)):
         if used[u]:
             out_pts[remap[u]] = points[first[u]]
     out_tris = np.empty((kept, 3), np.int64)
-    row = 0
-    for t in range(m):
+    for t in prange(m):
         if keep[t]:
             for v in range(3):
-                out_tris[row, v] = remap[rep[triangles[t, v]]]
-            row += 1
+                out_tris[row_of[t], v] = remap[rep[triangles[t, v]]]
     return out_pts, out_tris
 
 
@@ -187,21 +216,19 @@ def centroid_voxels(points: np.ndarray, triangles: np.ndarray, voxel_size: float
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def split_polygons(tris: np.ndarray, quads: np.ndarray, flip: bool) -> np.ndarray:
     """volumeToMesh's triangles, then each quad (a, b, c, d) as (a, b, c) and, after all of those,
     (a, c, d); every row reversed when ``flip``. int64 (T + 2Q, 3)."""
     nt, nq = tris.shape[0], quads.shape[0]
     out = np.empty((nt + 2 * nq, 3), np.int64)
-    for t in range(nt):
-        out[t, 0], out[t, 1], out[t, 2] = tris[t, 0], tris[t, 1], tris[t, 2]
-    for q in range(nq):
+    first, last = (2, 0) if flip else (0, 2)
+    for t in prange(nt):
+        out[t, first], out[t, 1], out[t, last] = tris[t, 0], tris[t, 1], tris[t, 2]
+    for q in prange(nq):
         a, b, c, d = quads[q, 0], quads[q, 1], quads[q, 2], quads[q, 3]
-        out[nt + q, 0], out[nt + q, 1], out[nt + q, 2] = a, b, c
-        out[nt + nq + q, 0], out[nt + nq + q, 1], out[nt + nq + q, 2] = a, c, d
-    if flip:
-        for t in range(out.shape[0]):
-            out[t, 0], out[t, 2] = out[t, 2], out[t, 0]
+        out[nt + q, first], out[nt + q, 1], out[nt + q, last] = a, b, c
+        out[nt + nq + q, first], out[nt + nq + q, 1], out[nt + nq + q, last] = a, c, d
     return out
 
 

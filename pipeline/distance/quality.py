@@ -177,10 +177,12 @@ def gradient_stats(grid: BlockGrid, mask: Callable[[np.ndarray], np.ndarray] | N
     return _norm_stats(np.linalg.norm(g, axis=1))
 
 
-def _hist_gradient(grid: BlockGrid, inside: np.ndarray = _NO_SIGN) -> dict:
-    """:func:`gradient_stats` without a mask; ``inside``: negate the values there first."""
+def _hist_gradient(grid: BlockGrid, inside: np.ndarray = _NO_SIGN, nbr: np.ndarray | None = None) -> dict:
+    """:func:`gradient_stats` without a mask; ``inside``: negate the values there first; ``nbr``:
+    the grid's :func:`block_neighbours` table when known."""
     hist = np.zeros(HIST_BINS, np.int64)
-    n, total = _gradient_hist(grid.values, grid.active, block_neighbours(grid), float(grid.voxel_size), hist,
+    nbr = block_neighbours(grid) if nbr is None else nbr
+    n, total = _gradient_hist(grid.values, grid.active, nbr, float(grid.voxel_size), hist,
                               _chunks(len(grid.values)), inside)
     return _hist_stats(hist, n, total)
 
@@ -309,15 +311,16 @@ def _error_stats(err: np.ndarray, h: float) -> dict:
     }
 
 
-def extra_zero_crossings(field: BlockGrid, reference: BlockGrid) -> dict:
+def extra_zero_crossings(field: BlockGrid, reference: BlockGrid, nbr: np.ndarray | None = None) -> dict:
     """Count voxel edges where ``field`` changes sign but ``reference`` does not.
 
     Both grids are compared on ``field``'s blocks; ``reference`` (e.g. frep, or the level
-    set negated) contributes where it has active voxels. Signs: > 0 vs <= 0.
+    set negated) contributes where it has active voxels. Signs: > 0 vs <= 0. ``nbr``: ``field``'s
+    :func:`block_neighbours` table when known.
     """
     rows = reference.block_index(field.origins)  # read through the rows: no aligned copy of the reference
     extra, edges = _sign_flips(field.values, field.active, reference.values, reference.active, rows,
-                               block_neighbours(field), _chunks(len(field.values)))
+                               block_neighbours(field) if nbr is None else nbr, _chunks(len(field.values)))
     return {"extra_zero_crossings": int(extra), "edges_compared": int(edges)}
 
 
@@ -328,11 +331,13 @@ def field_report(frep: BlockGrid, res, hf: BlockGrid) -> dict:
     # from the unsigned one and ``res.inside`` by the kernels: no signed copy of the grid
     dist, inside = res.distance, res.inside
     band = 3 * frep.voxel_size
+    # hfrep's blocks are the distance's (hfrep_blocks): one neighbour table serves both
+    nbr = block_neighbours(dist) if np.array_equal(hf.origins, dist.origins) else None
     return {
         "frep": {"gradient": gradient_stats(frep),
                  "deviation": deviation_on_blocks(frep, dist, band, -1.0, ref_inside=inside)},
-        "surface": {"gradient": _hist_gradient(dist, inside)},
-        "hfrep": {"gradient": gradient_stats(hf),
+        "surface": {"gradient": _hist_gradient(dist, inside, nbr)},
+        "hfrep": {"gradient": _hist_gradient(hf, nbr=nbr),
                   "deviation": deviation_on_blocks(hf, dist, band, -1.0, near=frep.origins, ref_inside=inside),
-                  **extra_zero_crossings(hf, frep)},
+                  **extra_zero_crossings(hf, frep, nbr)},
     }

@@ -928,7 +928,7 @@ def coarsest_same_count(comp: Components) -> tuple[Components, dict[int, int]]:
     """Algorithm 2: remove the finest level while the count stays the same; returns the
     coarsest such labelling and the map original label -> its label there (a bijection,
     since coarsening only merges and the count is unchanged)."""
-    best, mapping = comp, {k: k for k in range(1, comp.count + 1)}
+    best, best_rows = comp, None
     tree, rows = comp.tree, np.arange(len(comp.tree))
     for lv in range(comp.tree.depth - 1, -1, -1):
         # truncating the previous truncation gives the same tree as truncating the original (the
@@ -938,8 +938,10 @@ def coarsest_same_count(comp: Components) -> tuple[Components, dict[int, int]]:
         cand = label_cells(tree)
         if cand.count != comp.count:
             break
-        best, mapping = cand, _label_map(comp.labels, cand.labels[rows])
-    return best, mapping
+        best, best_rows = cand, rows
+    if best_rows is None:
+        return best, {k: k for k in range(1, comp.count + 1)}
+    return best, _label_map(comp.labels, best.labels[best_rows])  # once, for the level kept
 
 
 def _label_map(a: np.ndarray, b: np.ndarray) -> dict[int, int]:

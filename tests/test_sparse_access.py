@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from numba import njit
+from numba import njit, prange
 
 from pipeline.field.stencils import axis_difference, central_gradient_at, half_difference
 from pipeline.sparse.access import (
@@ -130,3 +130,22 @@ def test_half_difference_cases() -> None:
     assert f(1.0, False, 2.0, 5.0, True) == 3.0  # forward
     assert f(1.0, True, 2.0, 5.0, False) == 1.0  # backward
     assert f(1.0, False, 2.0, 5.0, False) == 0.0  # nothing known: flat
+
+
+@njit(parallel=True)
+def _centre_values(vals, act, nbr):
+    out = np.zeros(vals.shape[0])
+    for b in prange(vals.shape[0]):  # the prange index itself, unsigned in Numba's parfors
+        buf = np.empty((10, 10, 10))
+        abuf = np.empty((10, 10, 10), np.bool_)
+        load_ghosts(vals, act, np.zeros(0, np.int64), nbr, ALL27, b, 1, -1.0, buf, abuf)
+        out[b] = buf[1, 1, 1]
+    return out
+
+
+def test_load_ghosts_takes_a_prange_index() -> None:
+    """Numba unifies an unsigned prange index with int64 block rows to float64, which cannot
+    index an array: load_ghosts must type its centre row itself (this failed to compile)."""
+    origins, vals, act, _, _ = _grid(7, 1.0)
+    got = _centre_values(vals.astype(np.float64), act, block_neighbours27(origins))
+    assert np.array_equal(got, vals[:, 0, 0, 0].astype(np.float64))

@@ -84,7 +84,7 @@ def load_ghosts(vals, act, rows, nbr, cols, b, w, missing, buf, abuf):
     same = rows.shape[0] == 0
     for o in range(27):
         if o == 13:
-            n = b
+            n = np.int64(b)  # a prange index is unsigned: unified with int64 rows it would become float
         elif cols[o] < 0:
             continue
         else:

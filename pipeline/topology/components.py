@@ -33,7 +33,7 @@ from pipeline.model import ops
 from pipeline.model.base import Node
 from pipeline.model.tape import compile_model, evaluate_with
 from pipeline.model.tape_affine import affine_bounds
-from pipeline.sparse.access import block_neighbours27
+from pipeline.sparse.access import ALL27, block_neighbours27, load_ghosts
 from pipeline.sparse.grid import KEY_BITS, KEY_OFFSET, LEAF, key3, key_of
 
 INSIDE, BORDER = 1, 2
@@ -1020,14 +1020,17 @@ def _paint_cells(bkeys, level, coords, labels, depth, imin, lab, fine, mark_fine
     return painted
 
 
+_SAME_ROWS = np.zeros(0, np.int64)  # load_ghosts: block n is row n
+
+
 @numba.njit(cache=True, parallel=True)
 def _nearest_fine(active, lab, fine, nbr27, offsets):
     """Active voxels outside every kept cell take the label of the nearest finest-cell voxel
     (``offsets`` sorted by length, all shorter than a block: the first hit is the nearest).
     Returns the labels and a mask of the voxels with no hit within the offsets. Each block
     that has such voxels first copies the finest-cell labels of its 27 neighbours within
-    reach into a window (-1: not a finest cell, or no block), so that each offset costs one
-    read instead of a block lookup."""
+    reach into a window (access.load_ghosts; -1: not a finest cell, or no block), so that each
+    offset costs one read instead of a block lookup."""
     out = lab  # in place: only non-finest voxels are written, and the windows read finest ones only
     miss = np.zeros(active.shape, np.bool_)
     r = _NEAR_R
@@ -1041,13 +1044,14 @@ def _nearest_fine(active, lab, fine, nbr27, offsets):
                         todo = True
         if not todo:
             continue
-        win = np.full((w, w, w), -1, lab.dtype)
-        for x in range(-r, 8 + r):
-            for y in range(-r, 8 + r):
-                for z in range(-r, 8 + r):
-                    n = nbr27[b, ((x >> 3) + 1) * 9 + ((y >> 3) + 1) * 3 + (z >> 3) + 1]
-                    if n >= 0 and fine[n, x & 7, y & 7, z & 7]:
-                        win[x + r, y + r, z + r] = lab[n, x & 7, y & 7, z & 7]
+        win = np.empty((w, w, w), lab.dtype)
+        wfine = np.empty((w, w, w), np.bool_)
+        load_ghosts(lab, fine, _SAME_ROWS, nbr27, ALL27, b, r, -1, win, wfine)
+        for x in range(w):
+            for y in range(w):
+                for z in range(w):
+                    if not wfine[x, y, z]:
+                        win[x, y, z] = -1
         for i in range(8):
             for j in range(8):
                 for k in range(8):

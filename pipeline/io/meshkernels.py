@@ -99,6 +99,18 @@ def _nonzero_area(p: np.ndarray, a: int, b: int, c: int) -> bool:
     return (uy * vz - uz * vy) != 0.0 or (uz * vx - ux * vz) != 0.0 or (ux * vy - uy * vx) != 0.0
 
 
+@njit(cache=True)
+def _compact(used: np.ndarray) -> tuple[np.ndarray, int]:
+    """(new index of every used row in order, -1 for the others; how many are used)."""
+    remap = np.full(len(used), -1, np.int64)
+    count = 0
+    for u in range(len(used)):
+        if used[u]:
+            remap[u] = count
+            count += 1
+    return remap, count
+
+
 @njit(cache=True, parallel=True)
 def weld_kernel(points: np.ndarray, bits: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Merge bit-identical float32 points (``bits``: the points viewed as uint32), drop zero-area
@@ -122,12 +134,7 @@ def weld_kernel(points: np.ndarray, bits: np.ndarray, triangles: np.ndarray) -> 
             used[rep[triangles[t, 1]]] = True
             used[rep[triangles[t, 2]]] = True
             kept += 1
-    remap = np.full(len(first), -1, np.int64)
-    count = 0
-    for u in range(len(first)):
-        if used[u]:
-            remap[u] = count
-            count += 1
+    remap, count = _compact(used)
     out_pts = np.empty((count, 3), np.float32)
     for u in prange(len(first)):
         if used[u]:
@@ -378,12 +385,7 @@ def merge_kernel(bits: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, n
             used[b] = True
             used[c] = True
             kept += 1
-    remap = np.full(len(first), -1, np.int64)
-    count = 0
-    for u in range(len(first)):
-        if used[u]:
-            remap[u] = count
-            count += 1
+    remap, count = _compact(used)
     source = np.empty(count, np.int64)
     for u in range(len(first)):
         if used[u]:

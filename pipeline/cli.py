@@ -401,5 +401,17 @@ def _summary(rows: list[dict], out: Path, where: str) -> None:
     bad = sum(r["status"] in ("failed", "input-error") for r in rows)
     print(f"{len(rows)} jobs: {len(rows) - bad} ok or up to date, {bad} failed; outputs in {out}")
 
+def run() -> None:
+    """The console entry point (``frepvdb``, ``python -m pipeline.cli``): :func:`main`, then exit.
+
+    After an interrupt the run has said "interrupted" and cleaned up; objects finalised at exit
+    may then be half made (an interrupt during a Numba compilation leaves llvmlite objects whose
+    ``__del__`` raises), and Python would print their errors as tracebacks. Those are not shown."""
+    code = main()
+    if interrupted():
+        sys.unraisablehook = lambda unraisable: None
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

@@ -43,7 +43,7 @@ def write_batched(grid, origins: np.ndarray, fill: Callable[[int, int, np.ndarra
     ``fill(lo, hi, values, active)`` puts blocks lo..hi-1 into the (hi-lo, 8, 8, 8) float32 /
     bool arrays it is given (or, without ``fill``, ``source`` = (values, active) holds every
     block). Values times ``scale`` where active, the grid's background elsewhere (so
-    ``copyFromArray`` leaves those voxels inactive), as ``write_blocks``. ``done(hi)`` is called
+    ``copyFromArray`` leaves those voxels inactive), as :func:`write_leaves`. ``done(hi)`` is called
     after blocks ..hi-1 are written (to release what produced them)."""
     o = np.asarray(origins, np.int64).reshape(-1, 3)
     if len(o) == 0:

@@ -45,7 +45,7 @@ from scipy import ndimage
 
 from pipeline.distance.eikonal_bricks import BrickedFIM
 from pipeline.distance.fim import EXCLUDED, FREE, FROZEN, block_colour, fim, init_interface
-from pipeline.sparse.access import FACE_DIRS, block_neighbours, block_neighbours27
+from pipeline.sparse.access import FACE_DIRS, block_lattice, block_neighbours, block_neighbours27
 from pipeline.sparse.blockwrite import LeafSource, mapped_empty, release_rows
 from pipeline.sparse.grid import LEAF, BlockGrid, merge_sorted, pack_keys
 
@@ -387,7 +387,8 @@ def solve_distance(
     lo, hi, (lat_lo, dims) = _domain_blocks(frep, domain_index_bounds)
 
     band, band_sign, unsigned = _band_in_domain(frep, lat_lo, dims, lo, hi, signed_values)
-    band_mask, band_row = _lattice(band.origins, lat_lo, dims)
+    band_row = block_lattice(band.origins, lat_lo, dims)[0]
+    band_mask = band_row >= 0
     inside_blocks = _inside_box_blocks(inside_boxes, lat_lo, dims)
     block_sign = _block_signs(band_mask, band_row, _face_sign_sums(band_sign), inside_blocks)
     deep = None if inside_distance is None else float(inside_distance) / h + INSIDE_MARGIN
@@ -674,16 +675,6 @@ def _value_signs(values, active, origins, lo, hi, signed_values, sign):
                         sign[b, i, j, k] = 0
                         zeros += 1
     return zeros
-
-
-def _lattice(origins: np.ndarray, lat_lo: np.ndarray, dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Dense block lattice: presence mask and row number (-1 absent) of the given origins."""
-    mask = np.zeros(tuple(dims), dtype=bool)
-    row = np.full(tuple(dims), -1, dtype=np.int64)
-    p = (origins >> 3) - lat_lo
-    mask[p[:, 0], p[:, 1], p[:, 2]] = True
-    row[p[:, 0], p[:, 1], p[:, 2]] = np.arange(len(origins))
-    return mask, row
 
 
 def _assemble(band: BlockGrid, band_sign: np.ndarray, block_sign: np.ndarray, keep: np.ndarray, lat_lo):

@@ -28,7 +28,7 @@ import math
 import numpy as np
 from numba import njit
 
-from pipeline.sparse.access import block_neighbours
+from pipeline.sparse.access import block_lattice, block_neighbours, lattice_row
 from pipeline.sparse.grid import BlockGrid
 
 POLE = math.sqrt(3.0) - 2.0
@@ -116,19 +116,6 @@ def _bspline_weights(t, w, dw):
 
 
 @njit(cache=True)
-def _lookup(lattice, lat_lo, i, j, k):
-    """Row of the block holding voxel (i, j, k), -1 when absent."""
-    bi = (i >> 3) - lat_lo[0]
-    bj = (j >> 3) - lat_lo[1]
-    bk = (k >> 3) - lat_lo[2]
-    if bi < 0 or bj < 0 or bk < 0:
-        return -1
-    if bi >= lattice.shape[0] or bj >= lattice.shape[1] or bk >= lattice.shape[2]:
-        return -1
-    return lattice[bi, bj, bk]
-
-
-@njit(cache=True)
 def _eval_tricubic(coef, lattice, lat_lo, x, fill, val, grad, ok):
     """Tensor-product cubic B-spline value and index-space gradient at points ``x`` (N,3)."""
     wx = np.empty(4)
@@ -154,7 +141,7 @@ def _eval_tricubic(coef, lattice, lat_lo, x, fill, val, grad, ok):
             for b in range(4):
                 for c in range(4):
                     i, j, k = i0 + a, j0 + b, k0 + c
-                    row = _lookup(lattice, lat_lo, i, j, k)
+                    row = lattice_row(lattice, lat_lo, i, j, k)
                     if row < 0:
                         good = False
                         break
@@ -188,24 +175,13 @@ def _eval_trilinear(vals, lattice, lat_lo, x, fill, out):
             for b in range(2):
                 for c in range(2):
                     i, j, k = int(fi) + a, int(fj) + b, int(fk) + c
-                    row = _lookup(lattice, lat_lo, i, j, k)
+                    row = lattice_row(lattice, lat_lo, i, j, k)
                     if row < 0:
                         good = False
                         continue
                     w = (tx if a else 1 - tx) * (ty if b else 1 - ty) * (tz if c else 1 - tz)
                     v += w * vals[row, i & 7, j & 7, k & 7]
         out[p] = v if good else fill
-
-
-def _block_lattice(origins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Dense (int64) block lattice over the bounding box of ``origins`` and its origin."""
-    b = origins >> 3
-    lo = b.min(axis=0) if len(b) else np.zeros(3, np.int64)
-    dims = (b.max(axis=0) - lo + 1) if len(b) else np.ones(3, np.int64)
-    lattice = np.full(tuple(dims), -1, dtype=np.int64)
-    p = b - lo
-    lattice[p[:, 0], p[:, 1], p[:, 2]] = np.arange(len(b))
-    return lattice, lo.astype(np.int64)
 
 
 class TricubicSpline:
@@ -226,7 +202,7 @@ class TricubicSpline:
         for axis in range(3):
             _prefilter_axis(coef, nbr, axis, tol)
         self.coefficients = coef
-        self.lattice, self.lattice_lo = _block_lattice(grid.origins)
+        self.lattice, self.lattice_lo = block_lattice(grid.origins)
 
     def _index(self, points: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3) / self.voxel_size)

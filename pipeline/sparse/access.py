@@ -1,6 +1,7 @@
 """Sparse access: which block lies next to which, and a block loaded with ghost layers of its
 neighbours -- the one place block and voxel addressing is written (in the spirit of OpenVDB's
-ValueAccessor): the neighbour tables (:func:`block_neighbours`, :func:`block_neighbours27`) and
+ValueAccessor): the neighbour tables (:func:`block_neighbours`, :func:`block_neighbours27`), the
+dense lattice of block rows for lookups by voxel index (:func:`block_lattice`, :func:`lattice_row`) and
 :func:`load_ghosts`, which copies a block and any number of layers of its face, edge and corner
 neighbours into a buffer, so that a kernel's voxel loop runs without lookups. The solvers, the
 spline, the quality report and the component labelling use them; the stencils that read the
@@ -62,6 +63,36 @@ def neighbour_rows(origins: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     table[q[:, 0], q[:, 1], q[:, 2]] = np.arange(n, dtype=np.int32)
     _lookup_rows(table, q, np.ascontiguousarray(offsets, dtype=np.int64), out)
     return out
+
+
+def block_lattice(origins: np.ndarray, lat_lo: np.ndarray | None = None,
+                  dims: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(lattice, lat_lo): a dense int64 array of block rows (-1 where there is none) over the
+    blocks ``lat_lo .. lat_lo + dims - 1`` (in blocks; default: the bounding box of ``origins``),
+    for lookups by voxel index (:func:`lattice_row`). Origins outside the frame are left out."""
+    b = np.asarray(origins, np.int64).reshape(-1, 3) >> 3
+    if lat_lo is None:
+        lat_lo = b.min(axis=0) if len(b) else np.zeros(3, np.int64)
+        dims = (b.max(axis=0) - lat_lo + 1) if len(b) else np.ones(3, np.int64)
+    lat_lo = np.asarray(lat_lo, np.int64)
+    lattice = np.full(tuple(int(d) for d in dims), -1, dtype=np.int64)
+    p = b - lat_lo
+    ok = np.all((p >= 0) & (p < np.asarray(dims)), axis=1)
+    lattice[p[ok, 0], p[ok, 1], p[ok, 2]] = np.flatnonzero(ok)
+    return lattice, lat_lo
+
+
+@njit(cache=True, inline="always")
+def lattice_row(lattice, lat_lo, i, j, k):
+    """Row of the block holding voxel (i, j, k) in a :func:`block_lattice`, -1 when absent."""
+    bi = (i >> 3) - lat_lo[0]
+    bj = (j >> 3) - lat_lo[1]
+    bk = (k >> 3) - lat_lo[2]
+    if bi < 0 or bj < 0 or bk < 0:
+        return -1
+    if bi >= lattice.shape[0] or bj >= lattice.shape[1] or bk >= lattice.shape[2]:
+        return -1
+    return lattice[bi, bj, bk]
 
 
 @njit(cache=True, parallel=True)

@@ -25,17 +25,16 @@ no value can grow beyond a few c (the fixed point of c (1 + ln((2 + sqrt 2) f / 
 about 3.5 c). ``scale = inf`` (the default for direct calls) turns it off.
 
 The formulas are written once, as compiled scalar functions in :mod:`pipeline.field.rkernels`
-(which the tape's kernels and the BSP-field inline); the array functions here are NumPy ufuncs
-made from them. Their enclosures over boxes (affine arithmetic) are in :mod:`pipeline.model.ops`,
-which dispatches on the argument type; model nodes call the ``ops`` versions.
+(which the tape's kernels and the BSP-field inline); the array functions here run them in
+compiled loops over the broadcast arrays. Their enclosures over boxes (affine arithmetic) are in
+:mod:`pipeline.model.ops`, which dispatches on the argument type; model nodes call the ``ops``
+versions.
 """
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
-from numba import vectorize
+from numba import njit
 
 from pipeline.field import rkernels as rk
 
@@ -43,24 +42,42 @@ FAMILIES = ("min_max", "r0", "sardf")
 SARDF_K = 0.5  # half-width of the smoothing window (|f1-f2| < k*rho); must be < 1 to stay an R-function
 
 
-@functools.cache
-def _ufuncs() -> dict:
-    """The R-conjunctions of rkernels and the compression as float64 ufuncs (compiled on first
-    use, cached on disk: importing this module costs nothing)."""
-    sig = ["float64(float64, float64, float64)"]
-    return {
-        "r0": vectorize(sig, cache=True)(lambda f1, f2, cc: rk.compress(rk.r0_and(f1, f2), cc)),
-        "sardf": vectorize(["float64(float64, float64, float64, float64)"], cache=True)(
-            lambda f1, f2, k, cc: rk.compress(rk.sardf_and(f1, f2, k), cc)),
-        "compress": vectorize(["float64(float64, float64)"], cache=True)(lambda f, cc: rk.compress(f, cc)),
-    }
+@njit(cache=True)
+def _r0_loop(f1, f2, cc, out):
+    for i in range(out.shape[0]):
+        out[i] = rk.compress(rk.r0_and(f1[i], f2[i]), cc)
+
+
+@njit(cache=True)
+def _sardf_loop(f1, f2, k, cc, out):
+    for i in range(out.shape[0]):
+        out[i] = rk.compress(rk.sardf_and(f1[i], f2[i], k), cc)
+
+
+@njit(cache=True)
+def _compress_loop(f, cc, out):
+    for i in range(out.shape[0]):
+        out[i] = rk.compress(f[i], cc)
+
+
+def _apply(loop, *args) -> np.ndarray:
+    """``loop`` over the broadcast float64 arrays in ``args`` (the rest: scalars), as a ufunc
+    would: compiled loops load from Numba's cache in milliseconds, where a ``vectorize`` ufunc
+    builds its wrapper again in every process (0.4 s for these three)."""
+    arrays = [a for a in args if isinstance(a, np.ndarray)]
+    shape = np.broadcast_shapes(*(a.shape for a in arrays))
+    out = np.empty(shape)
+    flat = iter([np.ascontiguousarray(a if a.shape == shape else np.broadcast_to(a, shape), dtype=np.float64)
+                 .reshape(-1) for a in arrays])
+    loop(*[next(flat) if isinstance(a, np.ndarray) else float(a) for a in args], out.reshape(-1))
+    return out
 
 
 def compress(f: np.ndarray, scale: float) -> np.ndarray:
     """The identity for |f| <= scale, sign(f) scale (1 + ln(|f| / scale)) beyond (C1, increasing)."""
     if not np.isfinite(scale):
         return f
-    return _ufuncs()["compress"](f, scale)
+    return _apply(_compress_loop, np.asarray(f, np.float64), scale)
 
 
 def r_and(f1: np.ndarray, f2: np.ndarray, family: str = "r0", k: float = SARDF_K,
@@ -72,9 +89,9 @@ def r_and(f1: np.ndarray, f2: np.ndarray, family: str = "r0", k: float = SARDF_K
     if family == "min_max":
         return np.minimum(f1, f2)
     if family == "r0":
-        return _ufuncs()["r0"](f1, f2, scale)
+        return _apply(_r0_loop, np.asarray(f1, np.float64), np.asarray(f2, np.float64), scale)
     if family == "sardf":
-        return _ufuncs()["sardf"](f1, f2, k, scale)
+        return _apply(_sardf_loop, np.asarray(f1, np.float64), np.asarray(f2, np.float64), k, scale)
     raise ValueError(f"unknown R-function family {family!r}")
 
 

@@ -102,9 +102,9 @@ def _reference_and(f1: float, f2: float, family: str, scale: float) -> float:
 @settings(max_examples=300, deadline=None)
 @given(finite, finite, st.sampled_from(FAMILIES), st.sampled_from([np.inf, 1.0, 50.0]))
 def test_rfunctions_match_the_papers_formulas(f1: float, f2: float, family: str, scale: float) -> None:
-    """The compiled scalars (rkernels, which the tape and the BSP-field inline) and the NumPy
-    ufuncs made from them (rfunctions) equal the formulas as written (r0 computed naively here:
-    its cancellation costs up to (|f1| + |f2|) float64 units)."""
+    """The compiled scalars (rkernels, which the tape and the BSP-field inline) and the array
+    functions that run them in compiled loops (rfunctions) equal the formulas as written (r0
+    computed naively here: its cancellation costs up to (|f1| + |f2|) float64 units)."""
     code = FAMILY_CODE[family]
     tol = 1e-12 * (abs(f1) + abs(f2)) + 1e-300
     want_and = _reference_and(f1, f2, family, scale)

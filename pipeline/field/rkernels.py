@@ -1,6 +1,6 @@
 """The R-functions and the compression, written once, as compiled scalar functions (Numba):
 the formulas of pipeline.field.rfunctions (which documents them and applies them to arrays as
-ufuncs made from these).
+compiled loops over arrays).
 
 Used by the tape's clause arithmetic (pipeline.model.tape, tape_affine), the BSP-field of a mesh
 (pipeline.mesh.bsp), the separated pieces of the components stage and, through rfunctions, every

@@ -740,26 +740,16 @@ def surface_blocks(result: EikonalResult, band: float, full: bool = False) -> Bl
     keeps every solved voxel active (the whole interior and the outside up to max_distance).
     """
     bg = float(band) * result.distance.voxel_size
-    if not full:  # only the blocks that hold a band voxel are converted
-        return _narrow_band(result, bg)
+    if not full:  # the blocks that hold a band voxel, made all at once
+        leaves = surface_leaves(result, band)
+        values = np.empty((len(leaves.origins), LEAF, LEAF, LEAF), np.float32)
+        active = np.empty(values.shape, bool)
+        leaves.fill(0, len(leaves.origins), values, active)
+        return BlockGrid(leaves.voxel_size, bg, leaves.origins, values, active)
     sd = signed_distance_blocks(result)
     values = sd.values
     values[~sd.active] = np.where(result.inside[~sd.active], -bg, bg)
     return BlockGrid(sd.voxel_size, bg, sd.origins, values, sd.active)
-
-
-def _narrow_band(result: EikonalResult, bg: float) -> BlockGrid:
-    """:func:`surface_blocks` without ``full``: the same values, built on the blocks that hold a
-    voxel within ``bg`` of the surface (the unsigned distance is compared, so the signed copy
-    of the whole grid is never made; a narrow band only needs the blocks it touches,
-    signedFloodFill does the rest)."""
-    dist = result.distance
-    bg32 = np.float32(bg)
-    rows = np.flatnonzero(_near_blocks(dist.values, dist.active, bg32))
-    values = np.empty((len(rows), LEAF, LEAF, LEAF), np.float32)
-    active = np.empty(values.shape, bool)
-    _band_values(dist.values, dist.active, result.inside, rows, bg32, values, active)
-    return BlockGrid(dist.voxel_size, bg, dist.origins[rows], values, active)
 
 
 @njit(cache=True, parallel=True)
@@ -794,7 +784,9 @@ def _band_values(values, active, inside, rows, bg, out_v, out_a):
 def surface_leaves(result: EikonalResult, band: float, full: bool = False, consume: bool = False) -> LeafSource:
     """The leaves of the ``surface`` level set (:func:`surface_blocks`; background ``band`` voxels
     in world units), for pipeline.io.vdbgrids.level_set_grid. The narrow band is made a batch of
-    blocks at a time as it is written (never held whole). ``consume`` (narrow band only): the
+    blocks at a time as it is written (never held whole), only on the blocks that hold a voxel
+    within the band (the unsigned distance is compared, so no signed copy of the grid is made;
+    signedFloodFill does the rest). ``consume`` (narrow band only): the
     distance and side arrays of ``result`` are released as the band is written (``result`` is
     not to be read afterwards: the last use of a solve)."""
     bg = float(band) * result.distance.voxel_size

@@ -32,7 +32,7 @@ import numpy as np
 from numba import njit
 
 from pipeline.field.stencils import central_gradient_at, half_difference
-from pipeline.sparse.access import ALL27, FACE_ROWS27, FACES27, load_ghosts
+from pipeline.sparse.access import ALL27, FACE_ROWS27, FACES27, OWN_ROWS, load_ghosts
 
 FREE, FROZEN, EXCLUDED = 0, 1, 2
 PARALLEL_BLOCKS = 4096  # blocks (2 M voxels) from which the FIM runs its waves on all threads
@@ -77,10 +77,7 @@ def _load_block(d, inside, nbr27, b, buf, sbuf):
     """Block b with two ghost layers on each face into the (12,12,12) buffers (distance and side
     of the surface; an absent neighbour reads as unknown, inf and outside; edges and corners are
     not read by the axis stencils)."""
-    load_ghosts(d, inside, _SAME_ROWS, nbr27, FACES27, b, 2, np.inf, buf, sbuf)
-
-
-_SAME_ROWS = np.zeros(0, np.int64)
+    load_ghosts(d, inside, OWN_ROWS, nbr27, FACES27, b, 2, np.inf, buf, sbuf)
 
 
 @njit(cache=True, inline="always")

@@ -42,7 +42,7 @@ from scipy import ndimage
 
 from pipeline.distance.eikonal import SECOND_ORDER_VISITS, EikonalResult, solve_distance
 from pipeline.distance.fim import EXCLUDED, FREE, FROZEN, fim, upwind3
-from pipeline.sparse.access import FACES6, block_neighbours, block_neighbours27, load_ghosts
+from pipeline.sparse.access import FACES6, OWN_ROWS, block_neighbours, block_neighbours27, load_ghosts
 from pipeline.sparse.grid import LEAF, BlockGrid
 
 LEVEL_CELLS = (8, 128)  # cell edge in voxels of levels 1, 2: an OpenVDB leaf and an internal-node child
@@ -464,9 +464,6 @@ def fill_deep(blocks, fine: EikonalResult, fill: np.ndarray, sign: float = 1.0) 
                 blocks.values, blocks.active)
 
 
-_SAME_ROWS = np.zeros(0, np.int64)  # load_ghosts: block n is row n
-
-
 @njit(cache=True, parallel=True)
 def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, scale, out_v, out_a):
     """Per deep block t (block ``rows[t]``; ``nbr``: the face table of every block), at its ``mask[t]``
@@ -481,8 +478,8 @@ def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, s
         ins = np.zeros((10, 10, 10), np.bool_)
         cand = np.empty((1000, 4))
         # the block and its six face layers: a voxel counts where it is solved and inside
-        load_ghosts(vals, active, _SAME_ROWS, nbr, FACES6, b, 1, 0.0, buf, ok)
-        load_ghosts(inside, inside, _SAME_ROWS, nbr, FACES6, b, 1, False, ins, ins)
+        load_ghosts(vals, active, OWN_ROWS, nbr, FACES6, b, 1, 0.0, buf, ok)
+        load_ghosts(inside, inside, OWN_ROWS, nbr, FACES6, b, 1, False, ins, ins)
         for i in range(10):
             for j in range(10):
                 for k in range(10):

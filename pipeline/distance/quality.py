@@ -24,7 +24,7 @@ import numpy as np
 from numba import njit
 
 from pipeline.field.stencils import central_gradient_at
-from pipeline.sparse.access import FACES6, block_neighbours, load_ghosts, load_padded, load_padded_rows
+from pipeline.sparse.access import FACES6, OWN_ROWS, block_neighbours, load_ghosts, load_padded, load_padded_rows
 from pipeline.sparse.grid import BlockGrid
 
 
@@ -55,7 +55,7 @@ def _negate_inside(inside, nbr, b, buf, ibuf):
     that lie inside (``inside`` aligned with the blocks): the signed distance from the unsigned
     one. ``ibuf``: a (10,10,10) bool work buffer."""
     ibuf[:] = False
-    load_ghosts(inside, inside, _SAME_ROWS, nbr, FACES6, b, 1, False, ibuf, ibuf)
+    load_ghosts(inside, inside, OWN_ROWS, nbr, FACES6, b, 1, False, ibuf, ibuf)
     for i in range(10):
         for j in range(10):
             for k in range(10):
@@ -63,7 +63,6 @@ def _negate_inside(inside, nbr, b, buf, ibuf):
                     buf[i, j, k] = -buf[i, j, k]
 
 
-_SAME_ROWS = np.zeros(0, np.int64)
 _NO_SIGN = np.zeros((0, 8, 8, 8), np.bool_)
 
 

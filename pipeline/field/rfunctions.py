@@ -60,16 +60,15 @@ def _compress_loop(f, cc, out):
         out[i] = rk.compress(f[i], cc)
 
 
-def _apply(loop, *args) -> np.ndarray:
-    """``loop`` over the broadcast float64 arrays in ``args`` (the rest: scalars), as a ufunc
-    would: compiled loops load from Numba's cache in milliseconds, where a ``vectorize`` ufunc
-    builds its wrapper again in every process (0.4 s for these three)."""
-    arrays = [a for a in args if isinstance(a, np.ndarray)]
+def _apply(loop, arrays: tuple, *params: float) -> np.ndarray:
+    """``loop(*flat arrays, *params, out)`` over the float64 ``arrays`` broadcast together, as a
+    ufunc would: compiled loops load from Numba's cache in milliseconds, where a ``vectorize``
+    ufunc builds its wrapper again in every process (0.4 s for these three)."""
+    arrays = tuple(np.asarray(a, np.float64) for a in arrays)
     shape = np.broadcast_shapes(*(a.shape for a in arrays))
     out = np.empty(shape)
-    flat = iter([np.ascontiguousarray(a if a.shape == shape else np.broadcast_to(a, shape), dtype=np.float64)
-                 .reshape(-1) for a in arrays])
-    loop(*[next(flat) if isinstance(a, np.ndarray) else float(a) for a in args], out.reshape(-1))
+    flat = [np.ascontiguousarray(a if a.shape == shape else np.broadcast_to(a, shape)).reshape(-1) for a in arrays]
+    loop(*flat, *(float(p) for p in params), out.reshape(-1))
     return out
 
 
@@ -77,7 +76,7 @@ def compress(f: np.ndarray, scale: float) -> np.ndarray:
     """The identity for |f| <= scale, sign(f) scale (1 + ln(|f| / scale)) beyond (C1, increasing)."""
     if not np.isfinite(scale):
         return f
-    return _apply(_compress_loop, np.asarray(f, np.float64), scale)
+    return _apply(_compress_loop, (f,), scale)
 
 
 def r_and(f1: np.ndarray, f2: np.ndarray, family: str = "r0", k: float = SARDF_K,
@@ -89,9 +88,9 @@ def r_and(f1: np.ndarray, f2: np.ndarray, family: str = "r0", k: float = SARDF_K
     if family == "min_max":
         return np.minimum(f1, f2)
     if family == "r0":
-        return _apply(_r0_loop, np.asarray(f1, np.float64), np.asarray(f2, np.float64), scale)
+        return _apply(_r0_loop, (f1, f2), scale)
     if family == "sardf":
-        return _apply(_sardf_loop, np.asarray(f1, np.float64), np.asarray(f2, np.float64), k, scale)
+        return _apply(_sardf_loop, (f1, f2), k, scale)
     raise ValueError(f"unknown R-function family {family!r}")
 
 

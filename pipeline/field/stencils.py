@@ -33,15 +33,6 @@ def half_difference(lo, lo_known, c, hi, hi_known):
 
 
 @njit(cache=True, inline="always")
-def axis_difference(buf, known, i, j, k, axis):
-    """:func:`half_difference` along ``axis`` (0, 1, 2) at buffer cell (i, j, k); the cell's
-    neighbours along the axis must lie inside the buffer."""
-    di, dj, dk = int(axis == 0), int(axis == 1), int(axis == 2)
-    return half_difference(buf[i - di, j - dj, k - dk], known[i - di, j - dj, k - dk], buf[i, j, k],
-                           buf[i + di, j + dj, k + dk], known[i + di, j + dj, k + dk])
-
-
-@njit(cache=True, inline="always")
 def central_gradient_at(buf, known, i, j, k):
     """(gx, gy, gz, ok): the central-difference gradient (per voxel) at buffer cell (i, j, k);
     ok only when the cell and its six face neighbours are known (no one-sided fallback: the

@@ -37,7 +37,7 @@ inside ``bounds``.
 from __future__ import annotations
 
 import functools
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -52,6 +52,17 @@ from pipeline.util.errors import InputError
 from pipeline.voxel.voxelise import voxelise
 
 _ROUND = 1e-12  # relative allowance for the spline sum, step and products (>> float64 rounding)
+
+
+class _Solve(NamedTuple):
+    """What the node's solve gives: the eikonal result, the field, the per-block coefficient
+    ranges of its spline (for the bounds) and the statistics."""
+
+    result: Any
+    hf: HFRepField
+    block_min: np.ndarray
+    block_max: np.ndarray
+    stats: dict
 
 
 @register("hfrep")
@@ -109,7 +120,7 @@ class HFRepNode(Node):
     # voxelise and solve. Its problems are then found by the first stage that evaluates the
     # node, and located at the node (InputError ``node=``).
     @functools.cached_property
-    def _solved(self) -> tuple:
+    def _solved(self) -> _Solve:
         p = self.params
         imin, imax = self._index_box
         vox = voxelise(p.of, imin, imax, self.voxel_size, p.band, 4, self.t)
@@ -117,7 +128,8 @@ class HFRepNode(Node):
             raise InputError("the child has no surface inside the hfrep bounds", node=self.where or None)
         result = solve_distance(vox.blocks, p.max_distance, (imin, imax), vox.inside_boxes, order=p.order)
         hf = HFRepField(lambda q: p.of.evaluate(q, self.t), _spline(result), p.step, p.slope)
-        return result, hf, _block_ranges(hf.distance.coefficients), {**vox.stats, **result.stats}
+        bmin, bmax = _block_ranges(hf.distance.coefficients)
+        return _Solve(result, hf, bmin, bmax, {**vox.stats, **result.stats})
 
     def __getstate__(self) -> dict:
         state = super().__getstate__()
@@ -127,15 +139,15 @@ class HFRepNode(Node):
     @property
     def result(self):
         """The eikonal solve of the child's distance (:func:`pipeline.distance.eikonal.solve_distance`)."""
-        return self._solved[0]
+        return self._solved.result
 
     @property
     def hf(self) -> HFRepField:
-        return self._solved[1]
+        return self._solved.hf
 
     @property
     def stats(self) -> dict:
-        return self._solved[3]
+        return self._solved.stats
 
     def field(self, x, y, z, t):
         if any(isinstance(v, AffineForm) for v in (x, y, z)):
@@ -163,8 +175,9 @@ class HFRepNode(Node):
         ihi = np.clip(b, lat_lo - 1, lat_hi + 1).astype(np.int64)
         n = len(lo)
         smin, smax, complete = np.empty(n), np.empty(n), np.empty(n, dtype=np.bool_)
-        bmin, bmax = self._solved[2]
-        _coef_range(sp.coefficients, bmin, bmax, sp.lattice, sp.lattice_lo, ilo, ihi, smin, smax, complete)
+        solve = self._solved
+        _coef_range(sp.coefficients, solve.block_min, solve.block_max, sp.lattice, sp.lattice_lo, ilo, ihi, smin, smax,
+                    complete)
         fill = sp.fill
         smin = np.where(complete & ~bad, smin, np.minimum(smin, fill))
         smax = np.where(complete & ~bad, smax, np.maximum(smax, fill))

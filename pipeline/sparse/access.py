@@ -159,14 +159,15 @@ FACES6 = _columns(list(FACE_ROWS27), list(range(6)))
 FACES27 = _columns(list(FACE_ROWS27), list(FACE_ROWS27))
 #: :func:`load_ghosts` columns: every offset of a :func:`block_neighbours27` table (edges, corners)
 ALL27 = np.arange(27, dtype=np.int64)
-_SAME_ROWS = np.zeros(0, np.int64)  # block n is row n of the values
+#: load_ghosts ``rows`` for a grid read from its own rows (block n is row n of the values)
+OWN_ROWS = np.zeros(0, np.int64)
 
 
 @njit(cache=True)
 def load_padded(vals, act, nbr, b, buf, abuf):
     """Block b and its six face layers (a :func:`block_neighbours` table) into (10,10,10)
     buffers; edges and corners and absent faces read as inactive zeros."""
-    load_padded_rows(vals, act, _SAME_ROWS, nbr, b, buf, abuf)
+    load_padded_rows(vals, act, OWN_ROWS, nbr, b, buf, abuf)
 
 
 @njit(cache=True)

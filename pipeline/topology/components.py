@@ -33,7 +33,7 @@ from pipeline.model import ops
 from pipeline.model.base import Node
 from pipeline.model.tape import compile_model, evaluate_with
 from pipeline.model.tape_affine import affine_bounds
-from pipeline.sparse.access import ALL27, block_neighbours27, load_ghosts
+from pipeline.sparse.access import ALL27, OWN_ROWS, block_neighbours27, load_ghosts
 from pipeline.sparse.grid import KEY_BITS, KEY_OFFSET, LEAF, key3, key_of
 
 INSIDE, BORDER = 1, 2
@@ -1020,9 +1020,6 @@ def _paint_cells(bkeys, level, coords, labels, depth, imin, lab, fine, mark_fine
     return painted
 
 
-_SAME_ROWS = np.zeros(0, np.int64)  # load_ghosts: block n is row n
-
-
 @numba.njit(cache=True, parallel=True)
 def _nearest_fine(active, lab, fine, nbr27, offsets):
     """Active voxels outside every kept cell take the label of the nearest finest-cell voxel
@@ -1046,7 +1043,7 @@ def _nearest_fine(active, lab, fine, nbr27, offsets):
             continue
         win = np.empty((w, w, w), lab.dtype)
         wfine = np.empty((w, w, w), np.bool_)
-        load_ghosts(lab, fine, _SAME_ROWS, nbr27, ALL27, b, r, -1, win, wfine)
+        load_ghosts(lab, fine, OWN_ROWS, nbr27, ALL27, b, r, -1, win, wfine)
         for x in range(w):
             for y in range(w):
                 for z in range(w):

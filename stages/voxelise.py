@@ -46,7 +46,7 @@ def run(ctx, p: Params) -> dict:
     grid.updateMetadata({**ctx.grid_metadata("voxelise", p), "band_voxels": float(p.band)})
     ctx.grids["frep"] = grid
     # every voxel of the leaves holds a value of its true sign (evaluated, or +-background by its
-    # cell's proof; close_band puts each sign change in the band): hfrep needs no flood fill
+    # cell's proof; mark_band puts each sign change in the band): hfrep needs no flood fill
     ctx.put(FrepBand(res.blocks, res.inside_boxes, p.band, signed=True))
     return res.stats
 

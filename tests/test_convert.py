@@ -48,7 +48,9 @@ def test_mesh_to_vdb_to_mesh_keeps_the_volume(tmp_path, torus) -> None:
     h = 1.7 / 64  # the torus is 1.7 wide
     assert g.transform.voxelSize()[0] == pytest.approx(h)
     lo, hi = g.evalActiveVoxelBoundingBox()
-    assert all(lo[i] * h < -0.85 - 1.5 * h for i in (0, 1))  # the padded domain holds the band
+    # the padded domain holds the band: it reaches ceil(band) - 1 = 1 voxel beyond the sign change
+    # (the torus's rim lies on a voxel centre, -32 h: the band's outermost voxel is -33 h)
+    assert all(lo[i] * h < -0.85 - 0.5 * h for i in (0, 1))
     s = vdb.read(str(tmp_path / "part.vdb"), "surface")
     assert str(s.gridClass) == "level set"
     assert s.getConstAccessor().getValue((0, round(0.6 / h), 0)) < 0  # inside the tube: negative

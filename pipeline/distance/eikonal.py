@@ -372,7 +372,7 @@ def solve_distance(
     ``coarse_inside``, the others are listed in ``deep_rows`` / ``deep_mask``.
     ``signed_values``: the inactive voxels of ``frep``'s blocks hold values of the right sign,
     as voxelise's leaves do (evaluated values, or +-background by their cell's proof; its
-    ``close_band`` puts every sign change in the band): no flood fill of the band's signs
+    ``mark_band`` puts every sign change in the band): no flood fill of the band's signs
     (at 2048^3 the serial flood took 6.7 s).
     """
     if order not in (1, 2):

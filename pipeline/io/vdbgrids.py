@@ -116,7 +116,7 @@ def frep_to_vdb(blocks: BlockGrid, inside_boxes: np.ndarray, name: str = "frep",
     background to -bg, which swaps +bg and -bg on every inactive value.
 
     The flood fill is right in every leaf whose voxels all carry their sign and whose band is
-    closed (pipeline.voxel.voxelise.close_band): its scan lines then never cross a sign change between
+    closed (pipeline.voxel.voxelise.mark_band): its scan lines then never cross a sign change between
     inactive voxels. Where that does not hold it is not trusted (issue 12):
 
     * boxes proven inside (+bg) and, when given, ``outside_boxes`` (-bg) are filled explicitly,

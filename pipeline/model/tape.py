@@ -11,7 +11,7 @@ return None and the model keeps the node-by-node evaluator.
 **Evaluators** (Numba, one clause loop per point or per box; cf. libfive's and Fidget's tapes):
 
 - :func:`eval_blocks`: values at the voxel centres of blocks, each block with its own tape;
-  :func:`eval_mark_leaves`: the same, band-marked and written into the blocks' 8^3 leaves in one pass;
+  :func:`eval_leaves`: the same, band-marked and written into the blocks' 8^3 leaves in one pass;
 - :func:`bound_boxes`: interval bounds over boxes, each box with its own tape, recording for
   every ``min``/``max`` clause which operand decides it over the box;
 - :func:`specialise`: from those choices, the box's shortened tape — a ``min`` whose operand
@@ -38,7 +38,6 @@ import numpy as np
 from numba import njit, prange
 
 from pipeline.field.rkernels import compress, r0_and, sardf_and
-from pipeline.field.stencils import half_difference
 from pipeline.mesh.bsp_minmax import (
     BLOCK_TREE_MAX,
     BVH_STACK,
@@ -661,68 +660,34 @@ def _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c
 
 
 @njit(cache=True, parallel=True)
-def mark_band(v: np.ndarray, valid: np.ndarray, h: float, band: float) -> tuple[np.ndarray, int]:
-    """(band mask & valid, flat index of the first valid non-finite value or -1); a non-finite
-    value counts as -inf for its neighbours' sign tests. One parallel pass over the blocks."""
+def first_nonfinite(v: np.ndarray, valid: np.ndarray) -> int:
+    """Flat index of the first valid non-finite value of the blocks v (N, b, b, b), or -1."""
     n = v.shape[0]
-    out = np.zeros(v.shape, dtype=np.bool_)
     first = np.full(n, -1, np.int64)
     for q in prange(n):
-        first[q] = _mark_block(v, valid, q, h, band, out, np.empty(v.shape[1:]))
+        fv, fok = v[q].reshape(-1), valid[q].reshape(-1)
+        for w in range(fv.size):
+            if fok[w] and not np.isfinite(fv[w]):
+                first[q] = q * fv.size + w
+                break
     for q in range(n):
         if first[q] >= 0:
-            return out, first[q]
-    return out, -1
-
-
-@njit(cache=True)
-def _mark_block(v, valid, q, h, band, out, blk) -> int:
-    """Band mask of block q into out[q]; the flat index of its first valid non-finite value or -1.
-    ``blk``: a (b, b, b) work array (allocated once per caller: this runs per evaluated block)."""
-    b = v.shape[1]
-    lim = band * h
-    m = b * b * b
-    bad = -1
-    for i in range(b):
-        for j in range(b):
-            for k in range(b):
-                f = v[q, i, j, k]
-                if not np.isfinite(f):
-                    if bad < 0 and valid[q, i, j, k]:
-                        bad = q * m + (i * b + j) * b + k
-                    f = -np.inf
-                blk[i, j, k] = f
-    for i in range(b):
-        for j in range(b):
-            for k in range(b):
-                f = blk[i, j, k]
-                g2 = 0.0
-                change = f == 0.0
-                for axis in range(3):  # first order is enough to decide band membership
-                    c = i if axis == 0 else (j if axis == 1 else k)
-                    di, dj, dk = int(axis == 0), int(axis == 1), int(axis == 2)
-                    lo_ok, hi_ok = c > 0, c < b - 1  # within the block: one-sided at its faces
-                    a1 = blk[i - di, j - dj, k - dk] if lo_ok else f
-                    a2 = blk[i + di, j + dj, k + dk] if hi_ok else f
-                    d = half_difference(a1, lo_ok, f, a2, hi_ok) / h
-                    g2 += d * d
-                    if (a1 > 0) != (f > 0) or (a2 > 0) != (f > 0):
-                        change = True
-                out[q, i, j, k] = valid[q, i, j, k] and (change or abs(f) <= lim * np.sqrt(g2))
-    return bad
+            return first[q]
+    return -1
 
 
 @njit(parallel=True, cache=True)
-def eval_mark_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen, lstart, lblocks,
-                     imin, imax, band, limit, outside, values, act, known):
-    """:func:`eval_blocks`, :func:`mark_band` and the scatter of the blocks into their 8^3 leaves
-    in one parallel pass over the leaves (no (N, b, b, b) float64 values, band or domain arrays).
-    Leaf r holds the blocks ``lblocks[lstart[r]:lstart[r + 1]]``; its ``values`` start at
-    ``outside``, ``act`` and ``known`` False (each leaf writes only its own rows, and touches
-    them first from the thread that fills them). A block's voxels inside the domain imin..imax
-    are known and hold their value clamped to +-limit (float32); those beyond hold ``outside``.
-    Returns (the flat index q * b^3 + v of the first non-finite value in the domain, in block
-    order, or -1; how many values were clamped; how many voxels were evaluated in the domain)."""
+def eval_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen, lstart, lblocks,
+                     imin, imax, limit, outside, values, act, known):
+    """:func:`eval_blocks` and the scatter of the blocks into their 8^3 leaves in one parallel
+    pass over the leaves (no (N, b, b, b) float64 values or domain arrays). Leaf r holds the
+    blocks ``lblocks[lstart[r]:lstart[r + 1]]``; its ``values`` start at ``outside``, ``act``
+    and ``known`` False (each leaf writes only its own rows, and touches them first from the
+    thread that fills them; the caller marks the band on the leaves). A block's voxels inside
+    the domain imin..imax are known and hold their value clamped to +-limit (float32); those
+    beyond hold ``outside``. Returns (the flat index q * b^3 + v of the first non-finite value in
+    the domain, in block order, or -1; how many values were clamped; how many voxels were
+    evaluated in the domain)."""
     nl = lstart.shape[0] - 1
     m = block * block * block
     per = max(4, (nl + 63) // 64)
@@ -733,9 +698,6 @@ def eval_mark_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c
     for ch in prange(nch):
         reg, sj, sv, cn, co, cp, cq, cm, px, py, pz, treg, tfa = _block_scratch(maxlen, m, odepth, orc)
         bv = np.empty((1, block, block, block))
-        bok = np.empty((1, block, block, block), np.bool_)
-        bact = np.empty((1, block, block, block), np.bool_)
-        bwork = np.empty((block, block, block))
         first = -1
         for r in range(ch * per, min(nl, (ch + 1) * per)):
             values[r] = outside
@@ -745,28 +707,25 @@ def eval_mark_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c
                 q = lblocks[e]
                 _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c, orc, reg, sj, sv, cn,
                               co, cp, cq, cm, px, py, pz, bv, treg, tfa, 0)
-                for i in range(block):
-                    for j in range(block):
-                        for k in range(block):
-                            bok[0, i, j, k] = (imin[0] <= origins[q, 0] + i <= imax[0]
-                                               and imin[1] <= origins[q, 1] + j <= imax[1]
-                                               and imin[2] <= origins[q, 2] + k <= imax[2])
-                w = _mark_block(bv, bok, 0, h, band, bact, bwork)
-                if w >= 0 and (first < 0 or q * m + w < first):
-                    first = q * m + w
                 oi, oj, ok = origins[q, 0] & 7, origins[q, 1] & 7, origins[q, 2] & 7
                 for i in range(block):
                     for j in range(block):
                         for k in range(block):
-                            if bok[0, i, j, k]:
-                                f = bv[0, i, j, k]
-                                if abs(f) > limit:
-                                    nclamp[ch] += 1
-                                    f = min(max(f, -limit), limit)
-                                values[r, oi + i, oj + j, ok + k] = f
-                                known[r, oi + i, oj + j, ok + k] = True
-                                nvalid[ch] += 1
-                            act[r, oi + i, oj + j, ok + k] = bact[0, i, j, k]
+                            if not (imin[0] <= origins[q, 0] + i <= imax[0] and imin[1] <= origins[q, 1] + j <= imax[1]
+                                    and imin[2] <= origins[q, 2] + k <= imax[2]):
+                                continue
+                            f = bv[0, i, j, k]
+                            if not np.isfinite(f):
+                                w = q * m + (i * block + j) * block + k
+                                if first < 0 or w < first:
+                                    first = w
+                                continue
+                            if abs(f) > limit:
+                                nclamp[ch] += 1
+                                f = min(max(f, -limit), limit)
+                            values[r, oi + i, oj + j, ok + k] = f
+                            known[r, oi + i, oj + j, ok + k] = True
+                            nvalid[ch] += 1
         bad[ch] = first
     worst = -1
     for ch in range(nch):

@@ -9,17 +9,21 @@ internal and leaf nodes) and bounds *all cells of a level in one vectorised call
 * the rest are subdivided down to ``block`` voxels (<= the 8^3 leaf), and only those blocks are
   evaluated voxel by voxel.
 
-Each cell is bounded over its box dilated by max(band, 1) voxels, so every voxel within band
-voxels of the zero set lies in an evaluated block (the narrow band is never cut by culling),
-and a culled cell has the sign of its proof on the face neighbours of its voxels too.
-Inside the evaluated blocks a voxel is active when its first-order distance estimate
-|f| / |grad f| is at most ``band`` voxels, or when the sign changes to a neighbour.
+Each cell is bounded over its box dilated by ceil(band) voxels (at least 1: band.cull_pad_voxels),
+so every voxel nearer than band voxels to the zero set lies in an evaluated block (the narrow
+band is never cut by culling), and a culled cell has the sign of its proof on the face
+neighbours of its voxels too.
 
-**The band is closed by construction** (issue 12): after the blocks are assembled into leaves,
-:func:`close_band` activates every voxel whose sign (of the float32 value the grid stores)
-differs from a face neighbour's, across block and leaf borders. Since a culled voxel cannot
-differ in sign from its neighbours (its proof covers them), no inactive voxel is next to a
-sign change, so the sign of every inactive region is that of the band around it and
+The band is marked once the evaluated blocks are in their 8^3 leaves (:func:`pipeline.voxel.band.mark_band`,
+passes over the leaves reading their neighbours across block and leaf borders): a voxel is
+active when its sign (of the float32 value the grid stores) differs from a face neighbour's, or
+when it lies within ceil(band) - 1 voxels of such a voxel and its first-order distance estimate
+|f| / |grad f| is at most ``band`` voxels. The band does not depend on the block size the
+evaluation used.
+
+**The band is closed by construction** (issue 12): since a culled voxel cannot differ in sign
+from its neighbours (its proof covers them), no inactive voxel is next to a sign change, so the
+sign of every inactive region is that of the band around it and
 OpenVDB's signedFloodFill (scan lines and tile neighbours) cannot leak.
 """
 
@@ -40,11 +44,12 @@ from pipeline.model.tape import (
     bound_cull_decide,
     compile_model,
     eval_blocks,
-    eval_mark_leaves,
-    mark_band,
+    eval_leaves,
+    first_nonfinite,
     specialise,
 )
 from pipeline.sparse.grid import LEAF, LEAF_LOG2, BlockGrid, pack_keys
+from pipeline.voxel.band import cull_pad_voxels, mark_band
 
 BOUND_CHUNK = 200_000  # boxes per affine call at most (memory ~ 100 bytes x ops x boxes)
 EVAL_CHUNK = 1 << 20  # points per evaluation call at most
@@ -124,7 +129,7 @@ def enumerate_cells_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: floa
     counts = ((hi_c - start) // size) + 1
     cells = start + np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3) * size
     pool, tape_of = TapePool.single(tape), np.zeros(len(cells), np.int64)
-    pad = max(band, 1.0) * h
+    pad = cull_pad_voxels(band) * h
     out = CellLevels(np.zeros((0, 3), np.int64), block)
     st = {"cells_visited": 0, "cells_culled_inside": 0, "cells_culled_outside": 0, "levels": [],
           "tape_clauses": int(len(tape))}
@@ -220,7 +225,7 @@ def enumerate_cells(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, b
     counts = ((hi_c - start) // size) + 1
     grid = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
     cells = start + grid * size
-    pad = max(band, 1.0) * h  # >= one voxel: a culled cell's sign holds on its voxels' neighbours
+    pad = cull_pad_voxels(band) * h  # >= one voxel: a culled cell's sign holds on its voxels' neighbours
     out = CellLevels(np.zeros((0, 3), np.int64), block)
     st = {"cells_visited": 0, "cells_culled_inside": 0, "cells_culled_outside": 0, "levels": []}
     stop = block if stop_size is None else max(block, stop_size)
@@ -283,16 +288,6 @@ def evaluate_blocks(model: Node, origins: np.ndarray, block: int, h: float, t: f
     return out
 
 
-def band_mask(values: np.ndarray, h: float, band: float) -> np.ndarray:
-    """Active voxels of evaluated blocks: |f|/|grad f| <= band*h, or a sign change to a neighbour.
-
-    The gradient is by central differences inside a block and one-sided at its faces (first
-    order is enough to decide band membership); Numba, one pass over the blocks.
-    """
-    v = np.ascontiguousarray(values, dtype=np.float64)
-    return mark_band(v, np.ones(v.shape, np.bool_), float(h), float(band))[0]
-
-
 @dataclass
 class Voxelised:
     blocks: BlockGrid  # leaf blocks: evaluated values (+-background where not evaluated), band mask
@@ -307,7 +302,6 @@ class BlockSamples:
 
     blocks: np.ndarray  # (N,3) block origins
     values: np.ndarray  # (N,b,b,b) float64 field values
-    active: np.ndarray  # (N,b,b,b) band mask
     valid: np.ndarray  # (N,b,b,b) inside the domain
     inside: list  # [(origins, size)] cells proven inside, per level
     stats: dict
@@ -317,7 +311,8 @@ class BlockSamples:
 def sample_blocks(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: float = 3.0,
                   block: int = 4, t: float = 0.0, progress: Callable[[str], None] | None = None,
                   root_size: int | None = None, clip: tuple[np.ndarray, np.ndarray] | None = None) -> BlockSamples:
-    """Enumerate, evaluate and band-mark the blocks of the domain (or of one brick of it).
+    """Enumerate and evaluate the blocks of the domain (or of one brick of it); the band is
+    marked once the blocks are in their leaves (:func:`mark_band`, in :func:`assemble`).
 
     A model that lowers to a tape (pipeline.model.tape) is enumerated and evaluated with per-cell
     specialised tapes; one with an untraceable node (mesh, grid, hfrep, component oracles)
@@ -341,20 +336,20 @@ def sample_blocks(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, ban
     levels.stats["enumerate_seconds"] = round(t1 - t0, 4)  # tracing, culling and specialisation
     levels.stats["evaluate_seconds"] = round(t2 - t1, 4)  # values of the blocks' voxels
     valid = _in_domain(blocks, block, imin, imax)
-    active, bad = mark_band(vals, valid, float(h), float(band))
+    bad = first_nonfinite(vals, valid)
     if bad >= 0:
         n, i, j, k = np.unravel_index(bad, vals.shape)
         raise NonFiniteField((blocks[n] + (i, j, k)) * h)
     if progress:
         progress(f"evaluated {len(blocks)} blocks")
-    return BlockSamples(blocks, vals, active, valid, levels.inside, levels.stats, levels.outside)
+    return BlockSamples(blocks, vals, valid, levels.inside, levels.stats, levels.outside)
 
 
 def merge_samples(parts: list[BlockSamples]) -> BlockSamples:
     """Concatenate the samples of bricks (disjoint by construction) into one."""
     if len(parts) == 1:
         return parts[0]
-    cat = [np.concatenate([getattr(p, k) for p in parts]) for k in ("blocks", "values", "active", "valid")]
+    cat = [np.concatenate([getattr(p, k) for p in parts]) for k in ("blocks", "values", "valid")]
     keys = ("cells_visited", "cells_culled_inside", "cells_culled_outside", "enumerate_seconds", "evaluate_seconds")
     stats = {k: sum(p.stats[k] for p in parts) for k in keys}
     stats["bricks"] = len(parts)
@@ -363,13 +358,13 @@ def merge_samples(parts: list[BlockSamples]) -> BlockSamples:
 
 def assemble(s: BlockSamples, imin: np.ndarray, imax: np.ndarray, h: float, band: float) -> Voxelised:
     """Leaves, inside boxes and statistics from the evaluated blocks; the band is closed
-    (:func:`close_band`) and every value is finite (clamped to +-FINITE_LIMIT, counted)."""
+    (:func:`mark_band`) and every value is finite (clamped to +-FINITE_LIMIT, counted)."""
     block = s.values.shape[1] if len(s.values) else 4
     vals = s.values
     clamped = _count_beyond(vals, s.valid, FINITE_LIMIT)
     if clamped:
         vals = np.clip(vals, -FINITE_LIMIT, FINITE_LIMIT)
-    grid, known = _assemble_leaves(s.blocks, block, vals, s.active, s.valid, s.inside, h, 1.0)
+    grid, known = _assemble_leaves(s.blocks, block, vals, s.valid, s.inside, h, 1.0)
     stats = dict(s.stats)
     stats.update({"block": int(block), "blocks_evaluated": int(len(s.blocks)), "voxels_evaluated": int(s.valid.sum())})
     return _finish(grid, known, s.inside, s.outside, stats, clamped, imin, imax, h, band)
@@ -377,8 +372,8 @@ def assemble(s: BlockSamples, imin: np.ndarray, imax: np.ndarray, h: float, band
 
 def _finish(grid: BlockGrid, known: np.ndarray, inside: list, outside: list, stats: dict, clamped: int,
             imin: np.ndarray, imax: np.ndarray, h: float, band: float) -> Voxelised:
-    """The leaves' band closed, background and proxies set, the proven boxes and the statistics."""
-    added = close_band(grid, known)
+    """The leaves' band marked, background and proxies set, the proven boxes and the statistics."""
+    added = mark_band(grid, known, band)
     # from the float32 values the grid stores, so bricked (float32 transfer) and unsplit runs agree
     bg = _background(grid.values, grid.active, band, h)
     _set_proxies(grid.values, known, np.float32(bg))
@@ -387,7 +382,7 @@ def _finish(grid: BlockGrid, known: np.ndarray, inside: list, outside: list, sta
     outside_boxes = _outside_leaves(grid, _inside_boxes(outside, imin, imax))
     stats.update({
         "active_voxels": int(grid.active.sum()),
-        "activated_by_closure": int(added),
+        "activated_by_sign": int(added),
         "values_clamped": int(clamped),
         "leaves": int(len(grid.origins)),
         "inside_tiles": int(len(inside_boxes)),
@@ -399,10 +394,10 @@ def _finish(grid: BlockGrid, known: np.ndarray, inside: list, outside: list, sta
 def voxelise_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: float, band: float = 3.0, block: int = 4,
                   progress: Callable[[str], None] | None = None, t0: float | None = None) -> Voxelised:
     """:func:`assemble` of :func:`sample_blocks` for a model that lowers to a tape, without the
-    blocks' arrays: the blocks are evaluated, band-marked and written into their leaves by one
-    compiled pass over the leaves (tape.eval_mark_leaves; at 1024^3 the demo's blocks held 0.4 GB
+    blocks' arrays: the blocks are evaluated and written into their leaves by one
+    compiled pass over the leaves (tape.eval_leaves; at 1024^3 the demo's blocks held 0.4 GB
     of float64 values and 0.1 GB of band and domain masks, then scattered). The same grid, boxes
-    and statistics; ``evaluate_seconds`` then includes the band marking and the scatter."""
+    and statistics; ``evaluate_seconds`` then includes the scatter."""
     t0 = time.perf_counter() if t0 is None else t0
     imin, imax = np.asarray(imin, np.int64), np.asarray(imax, np.int64)
     levels, pool = enumerate_cells_tape(tape, imin, imax, h, band, block, progress)
@@ -422,9 +417,9 @@ def voxelise_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: float, band
         act = np.empty((L, LEAF, LEAF, LEAF), bool)
         known = np.empty((L, LEAF, LEAF, LEAF), bool)
         lstart = np.append(first, len(blocks)).astype(np.int64)
-        bad, clamped, nvalid = eval_mark_leaves(
+        bad, clamped, nvalid = eval_leaves(
             blocks, block, float(h), np.arange(len(blocks), dtype=np.int64), *pool.arrays(), *pool.oracle.arrays(),
-            int(pool.length.max()), lstart, order.astype(np.int64), imin, imax, float(band), FINITE_LIMIT,
+            int(pool.length.max()), lstart, order.astype(np.int64), imin, imax, FINITE_LIMIT,
             np.float32(-1.0), values, act, known)
         if bad < 0:
             _fill_inside_cells(values, sk[first], levels.inside, 1.0)
@@ -451,49 +446,6 @@ def _outside_leaves(grid: BlockGrid, boxes: np.ndarray) -> np.ndarray:
     sub = np.all((boxes[:, 1] >> LEAF_LOG2) << LEAF_LOG2 == leaf, axis=1)
     in_leaf = sub & (grid.block_index(leaf) >= 0)
     return boxes[~in_leaf]
-
-
-def close_band(grid: BlockGrid, known: np.ndarray) -> int:
-    """Activate every evaluated voxel whose sign (f > 0, of the stored float32 value) differs from
-    that of an evaluated face neighbour, within and across leaves. Returns how many were added."""
-    if len(grid.origins) == 0:
-        return 0
-    step = np.eye(3, dtype=np.int64) * LEAF
-    nbr = np.stack([grid.block_index(grid.origins + d * step[a]) for d in (1, -1) for a in range(3)], axis=1)
-    return int(_close_band(grid.values, grid.active, known, nbr.astype(np.int64)))
-
-
-@njit(cache=True, parallel=True)
-def _close_band(values, active, known, nbr) -> int:
-    """One parallel pass over the leaves (``nbr``: the rows of the +x, +y, +z, -x, -y, -z
-    neighbour leaves, -1 where none): a known voxel with a known face neighbour of the other sign
-    becomes active. A leaf writes only its own flags and reads only values and known flags, so the
-    leaves are independent; the relation is symmetric, so both voxels of a pair are activated."""
-    added = np.zeros(values.shape[0], np.int64)
-    for r in prange(values.shape[0]):
-        row = nbr[r, 0] * 0 + r  # int64, as the neighbour rows (a prange index may be unsigned)
-        n = 0
-        for i in range(LEAF):
-            for j in range(LEAF):
-                for k in range(LEAF):
-                    if not known[r, i, j, k] or active[r, i, j, k]:
-                        continue
-                    inside = values[r, i, j, k] > 0
-                    for s in range(6):
-                        d = 1 if s < 3 else -1
-                        axis = s % 3
-                        rr, ii, jj, kk = row, i + d * (axis == 0), j + d * (axis == 1), k + d * (axis == 2)
-                        if ii < 0 or jj < 0 or kk < 0 or ii == LEAF or jj == LEAF or kk == LEAF:
-                            rr = nbr[r, s]
-                            if rr < 0:
-                                continue
-                            ii, jj, kk = ii & (LEAF - 1), jj & (LEAF - 1), kk & (LEAF - 1)
-                        if known[rr, ii, jj, kk] and (values[rr, ii, jj, kk] > 0) != inside:
-                            active[r, i, j, k] = True
-                            n += 1
-                            break
-        added[r] = n
-    return added.sum()
 
 
 @njit(cache=True)
@@ -560,7 +512,7 @@ def _max_abs_active(values, active) -> float:
     return top.max()
 
 
-def _assemble_leaves(blocks, b, vals, active, valid, inside_levels, h, bg) -> tuple[BlockGrid, np.ndarray]:
+def _assemble_leaves(blocks, b, vals, valid, inside_levels, h, bg) -> tuple[BlockGrid, np.ndarray]:
     """Scatter evaluated blocks into 8^3 leaves; unevaluated voxels hold -bg, or +bg when a
     sub-leaf cell proved them inside. Also returns the mask of evaluated (known) voxels."""
     if len(blocks) == 0:
@@ -571,7 +523,7 @@ def _assemble_leaves(blocks, b, vals, active, valid, inside_levels, h, bg) -> tu
     values = np.full((L, LEAF, LEAF, LEAF), -bg, np.float32)
     act = np.zeros((L, LEAF, LEAF, LEAF), bool)
     known = np.zeros((L, LEAF, LEAF, LEAF), bool)
-    _scatter(values, act, known, rows.reshape(-1), blocks - leaf_of, vals, active, valid, np.float32(-bg))
+    _scatter(values, known, rows.reshape(-1), blocks - leaf_of, vals, valid, np.float32(-bg))
     _fill_inside_cells(values, keys, inside_levels, bg)
     grid = BlockGrid(h, -bg, leaf_of[first], values, act)  # keys are sorted: rows stay valid
     return grid, known
@@ -601,7 +553,7 @@ def _count_beyond(vals, valid, limit) -> int:
 
 
 @njit(cache=True, parallel=True)
-def _scatter(values, act, known, rows, offs, vals, active, valid, outside):
+def _scatter(values, known, rows, offs, vals, valid, outside):
     """Blocks into their leaves (blocks are disjoint: the parallel writes never meet); voxels
     outside the domain hold ``outside``."""
     b = vals.shape[1]
@@ -611,7 +563,6 @@ def _scatter(values, act, known, rows, offs, vals, active, valid, outside):
             for j in range(b):
                 for k in range(b):
                     values[r, oi + i, oj + j, ok + k] = vals[n, i, j, k] if valid[n, i, j, k] else outside
-                    act[r, oi + i, oj + j, ok + k] = active[n, i, j, k]
                     known[r, oi + i, oj + j, ok + k] = valid[n, i, j, k]
 
 

@@ -1,6 +1,6 @@
 """export: the grids the stages made -> .vdb, VTK files, previews and report.html.
 
-Library calls: pipeline.io.vdbio.write_vdb, pipeline.io.vtkio.write_vtk_outputs,
+Library calls: pipeline.io.vdbio.write_vdb_beside, pipeline.io.vtkio.write_vtk_outputs,
 pipeline.io.previews.write_previews, pipeline.io.report.write_report (after the manifest).
 """
 
@@ -13,7 +13,7 @@ from pydantic import Field
 
 from pipeline.io.meshout import export_meshes
 from pipeline.io.report import write_report
-from pipeline.io.vdbio import write_vdb
+from pipeline.io.vdbio import write_vdb_beside
 from stages.base import FrepBand, StageParams, band_only
 
 REQUIRES = (FrepBand,)
@@ -45,12 +45,29 @@ def run(ctx, p: Params) -> dict:
     names = [n for n in ctx.grids if p.grids is None or n in p.grids]
     grids = {n: ctx.grids[n] for n in names}
     stats: dict = {"grids": names}
-    if p.vdb:
+    pending = None
+    if p.vdb:  # written by a child process while the VTK files and previews are made here
         path = ctx.out_dir / f"{ctx.job.name}.vdb"
-        write_vdb(path, list(grids.values()), {"creator": "frepvdb", "config": ctx.job.name,
-                                               "config_sha256": ctx.job.config_sha256},
-                  half_float=p.half_float)
+        pending = write_vdb_beside(path, list(grids.values()), {
+            "creator": "frepvdb", "config": ctx.job.name, "config_sha256": ctx.job.config_sha256},
+            half_float=p.half_float)
         ctx.add_output(path, "vdb")
+    try:
+        _files_beside_vdb(ctx, p, grids, stats)
+    except BaseException:
+        if pending is not None:
+            pending.cancel()
+        raise
+    if pending is not None:
+        pending.wait()
+    if p.report:
+        ctx.after_manifest.append(_write_report)
+        ctx.outputs.append({"path": "report.html", "kind": "report"})
+    return stats
+
+
+def _files_beside_vdb(ctx, p: Params, grids: dict, stats: dict) -> None:
+    """VTK files, printable meshes and previews (they read the grids, as the .vdb writer does)."""
     mesh = None
     if p.vtk:
         from pipeline.io.vtkio import write_vtk_outputs  # VTK takes ~1 s to import: only when asked for
@@ -68,10 +85,6 @@ def run(ctx, p: Params) -> dict:
 
         for png in write_previews(ctx.out_dir / "previews", grids, ctx.voxel_size, mesh=mesh):
             ctx.add_output(png, "preview")
-    if p.report:
-        ctx.after_manifest.append(_write_report)
-        ctx.outputs.append({"path": "report.html", "kind": "report"})
-    return stats
 
 
 def _write_report(ctx, manifest: dict) -> None:

@@ -176,6 +176,55 @@ def test_vdb_failed_write_leaves_previous_file(grids: dict, tmp_path: Path) -> N
     assert not (tmp_path / "d.vdb").exists()
 
 
+def test_vdb_written_beside_is_the_same_file(grids: dict, tmp_path: Path) -> None:
+    """write_vdb_beside (a forked child writes while this process goes on): the same grids,
+    values, classes, half-float flags and file metadata as write_vdb, the caller's flags left
+    as they were, no temp file."""
+    from pipeline.io.vdbio import write_vdb_beside
+
+    names = list(grids)
+    pending = write_vdb_beside(tmp_path / "b.vdb", list(grids.values()), {"config": "x", "n": 2},
+                               half_float={"surface"})
+    assert pending.wait() == tmp_path / "b.vdb" and not grids["surface"].saveFloatAsHalf
+    write_vdb(tmp_path / "a.vdb", list(grids.values()), {"config": "x", "n": 2}, half_float={"surface"})
+    (ga, ma), (gb, mb) = vdb.readAll(str(tmp_path / "a.vdb")), vdb.readAll(str(tmp_path / "b.vdb"))
+    assert sorted(g.name for g in gb) == sorted(names) and [g.name for g in ga] == [g.name for g in gb]
+    assert ma == mb
+    for x, y in zip(ga, gb, strict=True):
+        assert x.activeVoxelCount() == y.activeVoxelCount() and x.gridClass == y.gridClass
+        assert dict(x.metadata) == dict(y.metadata)
+        lo, hi = x.evalActiveVoxelBoundingBox()
+        shape = tuple(int(b - a + 1) for a, b in zip(lo, hi, strict=True)) + ((3,) if x.valueTypeName == "vec3s" else ())
+        ax, ay = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+        x.copyToArray(ax, ijk=lo)
+        y.copyToArray(ay, ijk=lo)
+        assert np.array_equal(ax, ay), x.name
+    meta = {m["name"]: m for m in vdb.readAllGridMetadata(str(tmp_path / "b.vdb"))}
+    assert meta["surface"]["is_saved_as_half_float"] and not meta["frep"]["is_saved_as_half_float"]
+    assert _no_temp_files(tmp_path)
+
+
+def test_vdb_written_beside_reports_the_childs_error(grids: dict, tmp_path: Path) -> None:
+    """An OS error in the child comes back as an OSError with its errno and file; bad arguments
+    are refused before the fork; cancel() kills and reaps the child and leaves no file."""
+    import errno
+
+    from pipeline.io.vdbio import write_vdb_beside
+
+    (tmp_path / "file").write_text("not a folder")
+    pending = write_vdb_beside(tmp_path / "file" / "x.vdb", [grids["frep"]])
+    with pytest.raises(OSError) as err:
+        pending.wait()
+    assert err.value.errno in (errno.EEXIST, errno.ENOTDIR)
+    with pytest.raises(ValueError, match="unique"):
+        write_vdb_beside(tmp_path / "d.vdb", [grids["frep"], grids["frep"]])
+    pending = write_vdb_beside(tmp_path / "c.vdb", list(grids.values()))
+    pending.cancel()
+    pending.cancel()  # once is enough; a second call does nothing
+    if (tmp_path / "c.vdb").exists():  # the child finished before the kill: then the whole file
+        assert len(vdb.readAll(str(tmp_path / "c.vdb"))[0]) == len(grids)
+
+
 def test_metadata_value_conversions() -> None:
     assert metadata_value(np.float32(1.5)) == 1.5 and isinstance(metadata_value(np.int64(3)), int)
     assert metadata_value((1, 2, 3)) == (1, 2, 3)

@@ -8,6 +8,7 @@ JSON string, so that Houdini and Blender show it and scripts can ``json.loads`` 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from collections.abc import Iterable, Mapping
@@ -117,6 +118,17 @@ def write_vdb(
     grids. Each grid's ``saveFloatAsHalf`` flag is restored afterwards. Names must be unique.
     """
     path = Path(path)
+    halves = _checked_halves(grids, half_float)
+    saved = [g.saveFloatAsHalf for g in grids]
+    try:
+        _write_now(path, grids, file_metadata, halves)
+    finally:
+        for g, flag in zip(grids, saved, strict=True):
+            g.saveFloatAsHalf = flag
+    return path
+
+
+def _checked_halves(grids: list, half_float: bool | Iterable[str]) -> set[str]:
     names = [g.name for g in grids]
     if len(set(names)) != len(names) or any(not n for n in names):
         raise ValueError(f"grid names must be non-empty and unique, got {names}")
@@ -124,18 +136,101 @@ def write_vdb(
     unknown = halves - set(names)
     if unknown:
         raise ValueError(f"half_float names grids that are not written: {sorted(unknown)}")
-    saved = [g.saveFloatAsHalf for g in grids]
-    try:
-        for g in grids:
-            if g.name in halves:
-                _check_half_safe(g)
-            g.saveFloatAsHalf = g.name in halves
-        with atomic_path(path) as tmp:
-            vdb.write(str(tmp), grids=list(grids), metadata=file_metadata_dict(file_metadata or {}))
-    finally:
-        for g, flag in zip(grids, saved, strict=True):
-            g.saveFloatAsHalf = flag
-    return path
+    for g in grids:
+        if g.name in halves:
+            _check_half_safe(g)
+    return halves
+
+
+def _write_now(path: Path, grids: list, file_metadata: Mapping[str, Any] | None, halves: set[str]) -> None:
+    for g in grids:
+        g.saveFloatAsHalf = g.name in halves
+    with atomic_path(path) as tmp:
+        vdb.write(str(tmp), grids=list(grids), metadata=file_metadata_dict(file_metadata or {}))
+
+
+class PendingWrite:
+    """A .vdb being written by a forked child process (:func:`write_vdb_beside`); :meth:`wait`
+    returns its path or raises the child's error (an OSError keeps its errno and file name)."""
+
+    def __init__(self, path: Path, pid: int | None, errors: int | None):
+        self.path, self._pid, self._errors = path, pid, errors
+
+    def wait(self) -> Path:
+        if self._pid is None:
+            return self.path
+        pid, self._pid = self._pid, None
+        _, status = os.waitpid(pid, 0)
+        with os.fdopen(self._errors, "rb") as f:
+            report = f.read()
+        if os.waitstatus_to_exitcode(status) == 0 and not report:
+            return self.path
+        err = json.loads(report) if report else {"kind": "signal", "message": f"writer ended with {status}"}
+        if err.get("errno") is not None:
+            raise OSError(err["errno"], err["message"], err.get("filename") or str(self.path))
+        raise RuntimeError(f"writing {self.path.name}: {err['message']}")
+
+    def cancel(self) -> None:
+        """Kill the child and reap it (used when the export fails; the output is not renamed into
+        place, and the job's staging folder with any temp file in it is discarded)."""
+        if self._pid is None:
+            return
+        import signal
+
+        pid, self._pid = self._pid, None
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        os.close(self._errors)
+
+
+def write_vdb_beside(
+    path: str | os.PathLike,
+    grids: list,
+    file_metadata: Mapping[str, Any] | None = None,
+    half_float: bool | Iterable[str] = False,
+) -> PendingWrite:
+    """:func:`write_vdb` in a forked child while this process goes on (POSIX; elsewhere, or with
+    FREPVDB_SERIAL_WRITE=1, it writes before returning).
+
+    Why a process: pyopenvdb holds the GIL while it compresses and writes (4-5 s for the demo's
+    five grids at 1024^3), so no thread can run beside it, and the export's other work (VTK
+    files, previews) holds the GIL too. The child shares the grids' memory copy-on-write and
+    only reads it. It dies with this process (PR_SET_PDEATHSIG) and reports an error as JSON on
+    a pipe. Bad arguments are refused here, before the fork."""
+    path = Path(path)
+    halves = _checked_halves(grids, half_float)
+    meta = dict(file_metadata or {})
+    if not hasattr(os, "fork") or os.environ.get("FREPVDB_SERIAL_WRITE") == "1":
+        write_vdb(path, grids, meta, halves)
+        return PendingWrite(path, None, None)
+    read_end, write_end = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: write, report, leave without running the parent's exit handlers
+        code = 0
+        try:
+            os.close(read_end)
+            _die_with_parent()
+            _write_now(path, grids, meta, halves)
+        except BaseException as e:  # noqa: BLE001 - everything goes back to the parent
+            code = 1
+            err = {"message": str(getattr(e, "strerror", None) or e), "errno": getattr(e, "errno", None),
+                   "filename": getattr(e, "filename", None)}
+            with contextlib.suppress(Exception):
+                os.write(write_end, json.dumps(err, default=str).encode())
+        finally:
+            os._exit(code)
+    os.close(write_end)
+    return PendingWrite(path, pid, read_end)
+
+
+def _die_with_parent() -> None:
+    """Linux: the child gets SIGKILL when its parent dies (a killed run leaves no writer behind)."""
+    with contextlib.suppress(Exception):
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
 
 
 def read_grids(path: str | os.PathLike) -> dict:

@@ -21,7 +21,7 @@ from pydantic import Field, model_validator
 
 from pipeline.field import rfunctions as rf
 from pipeline.io import vdbgrids as vg
-from pipeline.io.vdbio import write_vdb
+from pipeline.io.vdbio import write_vdb_beside
 from pipeline.sparse.grid import BlockGrid
 from pipeline.topology import component_bricks as cb
 from pipeline.topology import components as cc
@@ -178,17 +178,30 @@ def _separate(ctx, p: Params, found: cc.Components, labels: np.ndarray, kept: li
     boxes = np.asarray(frep.inside_boxes, np.int64).reshape(-1, 2, 3)
     box_labels = cc.point_labels(found, 0.5 * (boxes[:, 0] + boxes[:, 1]) * blocks.voxel_size) if len(boxes) \
         else np.zeros(0, np.int64)
-    files = []
-    for k in kept:
-        field = cc.ClusterField(sep, mapping[k], p.method)
-        piece = _piece_blocks(blocks, labels, k, field, voxel_depth, ctx.job.domain.index_min)
-        grid = vg.frep_to_vdb(piece, boxes[box_labels == k], "frep")
-        grid.updateMetadata({**ctx.grid_metadata("components", p), "component_index": int(k),
-                             "component_volume": float(found.volumes[k - 1])})
-        path = ctx.out_dir / f"{ctx.job.name}_component_{k}.vdb"
-        write_vdb(path, [grid], {"creator": "frepvdb", "config": ctx.job.name, "component": int(k)})
-        ctx.add_output(path, "vdb")
-        files.append(path.name)
+    files, pending = [], []
+    try:
+        for k in kept:
+            field = cc.ClusterField(sep, mapping[k], p.method)
+            piece = _piece_blocks(blocks, labels, k, field, voxel_depth, ctx.job.domain.index_min)
+            grid = vg.frep_to_vdb(piece, boxes[box_labels == k], "frep")
+            del piece
+            grid.updateMetadata({**ctx.grid_metadata("components", p), "component_index": int(k),
+                                 "component_volume": float(found.volumes[k - 1])})
+            path = ctx.out_dir / f"{ctx.job.name}_component_{k}.vdb"
+            # written by a child process while the next piece is computed (at most two at once:
+            # each holds its grid's memory until written)
+            if len(pending) >= 2:
+                pending.pop(0).wait()
+            pending.append(write_vdb_beside(path, [grid], {"creator": "frepvdb", "config": ctx.job.name,
+                                                           "component": int(k)}))
+            ctx.add_output(path, "vdb")
+            files.append(path.name)
+        while pending:
+            pending.pop(0).wait()
+    except BaseException:
+        for w in pending:
+            w.cancel()
+        raise
     return {"files": files, "method": p.method, "separation_depth": int(sep.tree.depth)}
 
 

@@ -31,7 +31,7 @@ import numpy as np
 from numba import njit, prange
 
 from pipeline.field.stencils import half_difference
-from pipeline.sparse.access import FACE_ROWS27, block_neighbours27
+from pipeline.sparse.access import block_neighbours
 from pipeline.sparse.grid import LEAF, BlockGrid
 
 MAX_STEP = LEAF - 1  # voxels a dilation pass may reach into a neighbour leaf
@@ -56,7 +56,7 @@ def mark_band(grid: BlockGrid, known: np.ndarray, band: float) -> int:
     neighbours across leaves. Returns how many voxels only the sign test made active."""
     if len(grid.origins) == 0:
         return 0
-    nbr = np.ascontiguousarray(block_neighbours27(grid)[:, FACE_ROWS27])  # -x, +x, -y, +y, -z, +z
+    nbr = block_neighbours(grid)  # -x, +x, -y, +y, -z, +z
     pos, kn, zero = _row_bits(grid.values, known)
     sign = _sign_changes(pos, kn, zero, nbr)
     near = sign

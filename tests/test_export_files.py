@@ -204,11 +204,16 @@ def test_vdb_written_beside_is_the_same_file(grids: dict, tmp_path: Path) -> Non
     assert _no_temp_files(tmp_path)
 
 
-def test_vdb_written_beside_reports_the_childs_error(grids: dict, tmp_path: Path) -> None:
-    """An OS error in the child comes back as an OSError with its errno and file; bad arguments
-    are refused before the fork; cancel() kills and reaps the child and leaves no file."""
+def test_vdb_written_beside_reports_the_childs_error(grids: dict, tmp_path: Path, monkeypatch) -> None:
+    """An OS error in the child comes back as an OSError with its errno and file, and so does a
+    child killed without a word (EIO, with the signal); bad arguments are refused before the
+    fork; cancel() kills and reaps a child that is still writing, and no file appears."""
     import errno
+    import os
+    import signal
+    import time
 
+    from pipeline.io import vdbio
     from pipeline.io.vdbio import write_vdb_beside
 
     (tmp_path / "file").write_text("not a folder")
@@ -218,11 +223,23 @@ def test_vdb_written_beside_reports_the_childs_error(grids: dict, tmp_path: Path
     assert err.value.errno in (errno.EEXIST, errno.ENOTDIR)
     with pytest.raises(ValueError, match="unique"):
         write_vdb_beside(tmp_path / "d.vdb", [grids["frep"], grids["frep"]])
+    slow = vdbio._write_now
+
+    def stalled(*args):  # the forked child inherits this: it is still writing when killed
+        time.sleep(60)
+        slow(*args)
+
+    monkeypatch.setattr(vdbio, "_write_now", stalled)
+    pending = write_vdb_beside(tmp_path / "k.vdb", list(grids.values()))
+    os.kill(pending._pid, signal.SIGKILL)  # as the OOM killer would: no report on the pipe
+    with pytest.raises(OSError, match="killed by signal 9") as err:
+        pending.wait()
+    assert err.value.errno == errno.EIO and err.value.filename == str(tmp_path / "k.vdb")
+    t0 = time.perf_counter()
     pending = write_vdb_beside(tmp_path / "c.vdb", list(grids.values()))
     pending.cancel()
     pending.cancel()  # once is enough; a second call does nothing
-    if (tmp_path / "c.vdb").exists():  # the child finished before the kill: then the whole file
-        assert len(vdb.readAll(str(tmp_path / "c.vdb"))[0]) == len(grids)
+    assert time.perf_counter() - t0 < 30 and not (tmp_path / "c.vdb").exists()
 
 
 def test_metadata_value_conversions() -> None:

@@ -9,6 +9,7 @@ JSON string, so that Houdini and Blender show it and scripts can ``json.loads`` 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 from collections.abc import Iterable, Mapping
@@ -163,9 +164,13 @@ class PendingWrite:
         _, status = os.waitpid(pid, 0)
         with os.fdopen(self._errors, "rb") as f:
             report = f.read()
-        if os.waitstatus_to_exitcode(status) == 0 and not report:
+        code = os.waitstatus_to_exitcode(status)
+        if code == 0 and not report:
             return self.path
-        err = json.loads(report) if report else {"kind": "signal", "message": f"writer ended with {status}"}
+        if not report:  # killed (by the kernel's OOM killer, say) before it could say why
+            how = f"killed by signal {-code}" if code < 0 else f"exited with status {code}"
+            raise OSError(errno.EIO, f"the process writing it was {how}", str(self.path))
+        err = json.loads(report)
         if err.get("errno") is not None:
             raise OSError(err["errno"], err["message"], err.get("filename") or str(self.path))
         raise RuntimeError(f"writing {self.path.name}: {err['message']}")

@@ -219,8 +219,10 @@ def write_vdb_beside(
             _write_now(path, grids, meta, halves)
         except BaseException as e:  # noqa: BLE001 - everything goes back to the parent
             code = 1
-            err = {"message": str(getattr(e, "strerror", None) or e), "errno": getattr(e, "errno", None),
-                   "filename": getattr(e, "filename", None)}
+            # short: the parent reads the pipe only after the child has exited, and a report
+            # larger than the pipe's buffer (64 KiB) would block the child's write forever
+            err = {"message": str(getattr(e, "strerror", None) or e)[:2000], "errno": getattr(e, "errno", None),
+                   "filename": str(getattr(e, "filename", None) or "")[:4000] or None}
             with contextlib.suppress(Exception):
                 os.write(write_end, json.dumps(err, default=str).encode())
         finally:

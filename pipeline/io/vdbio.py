@@ -119,13 +119,7 @@ def write_vdb(
     grids. Each grid's ``saveFloatAsHalf`` flag is restored afterwards. Names must be unique.
     """
     path = Path(path)
-    halves = _checked_halves(grids, half_float)
-    saved = [g.saveFloatAsHalf for g in grids]
-    try:
-        _write_now(path, grids, file_metadata, halves)
-    finally:
-        for g, flag in zip(grids, saved, strict=True):
-            g.saveFloatAsHalf = flag
+    _write_now(path, grids, file_metadata, _checked_halves(grids, half_float))
     return path
 
 
@@ -144,10 +138,17 @@ def _checked_halves(grids: list, half_float: bool | Iterable[str]) -> set[str]:
 
 
 def _write_now(path: Path, grids: list, file_metadata: Mapping[str, Any] | None, halves: set[str]) -> None:
-    for g in grids:
-        g.saveFloatAsHalf = g.name in halves
-    with atomic_path(path) as tmp:
-        vdb.write(str(tmp), grids=list(grids), metadata=file_metadata_dict(file_metadata or {}))
+    """The atomic write of checked arguments; each grid's ``saveFloatAsHalf`` flag is set for it
+    and restored afterwards."""
+    saved = [g.saveFloatAsHalf for g in grids]
+    try:
+        for g in grids:
+            g.saveFloatAsHalf = g.name in halves
+        with atomic_path(path) as tmp:
+            vdb.write(str(tmp), grids=list(grids), metadata=file_metadata_dict(file_metadata or {}))
+    finally:
+        for g, flag in zip(grids, saved, strict=True):
+            g.saveFloatAsHalf = flag
 
 
 class PendingWrite:
@@ -207,7 +208,7 @@ def write_vdb_beside(
     halves = _checked_halves(grids, half_float)
     meta = dict(file_metadata or {})
     if not hasattr(os, "fork") or os.environ.get("FREPVDB_SERIAL_WRITE") == "1":
-        write_vdb(path, grids, meta, halves)
+        _write_now(path, grids, meta, halves)
         return PendingWrite(path, None, None)
     read_end, write_end = os.pipe()
     pid = os.fork()

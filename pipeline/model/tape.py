@@ -11,7 +11,8 @@ return None and the model keeps the node-by-node evaluator.
 **Evaluators** (Numba, one clause loop per point or per box; cf. libfive's and Fidget's tapes):
 
 - :func:`eval_blocks`: values at the voxel centres of blocks, each block with its own tape;
-  :func:`eval_leaves`: the same, band-marked and written into the blocks' 8^3 leaves in one pass;
+  :func:`eval_leaves`: the same, written into the blocks' 8^3 leaves in one pass (the band is
+  marked on the leaves afterwards: pipeline.voxel.band);
 - :func:`bound_boxes`: interval bounds over boxes, each box with its own tape, recording for
   every ``min``/``max`` clause which operand decides it over the box;
 - :func:`specialise`: from those choices, the box's shortened tape — a ``min`` whose operand
@@ -678,11 +679,11 @@ def first_nonfinite(v: np.ndarray, valid: np.ndarray) -> int:
 
 @njit(parallel=True, cache=True)
 def eval_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen, lstart, lblocks,
-                     imin, imax, limit, outside, values, act, known):
+                     imin, imax, limit, outside, values, known):
     """:func:`eval_blocks` and the scatter of the blocks into their 8^3 leaves in one parallel
     pass over the leaves (no (N, b, b, b) float64 values or domain arrays). Leaf r holds the
-    blocks ``lblocks[lstart[r]:lstart[r + 1]]``; its ``values`` start at ``outside``, ``act``
-    and ``known`` False (each leaf writes only its own rows, and touches them first from the
+    blocks ``lblocks[lstart[r]:lstart[r + 1]]``; its ``values`` start at ``outside`` and
+    ``known`` at False (each leaf writes only its own rows, and touches them first from the
     thread that fills them; the caller marks the band on the leaves). A block's voxels inside
     the domain imin..imax are known and hold their value clamped to +-limit (float32); those
     beyond hold ``outside``. Returns (the flat index q * b^3 + v of the first non-finite value in
@@ -701,7 +702,6 @@ def eval_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c, orc
         first = -1
         for r in range(ch * per, min(nl, (ch + 1) * per)):
             values[r] = outside
-            act[r] = False
             known[r] = False
             for e in range(lstart[r], lstart[r + 1]):
                 q = lblocks[e]

@@ -414,15 +414,15 @@ def voxelise_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: float, band
         first = np.flatnonzero(np.concatenate([[True], sk[1:] != sk[:-1]]))
         L = len(first)
         values = np.empty((L, LEAF, LEAF, LEAF), np.float32)  # first touched by the pass, leaf by leaf
-        act = np.empty((L, LEAF, LEAF, LEAF), bool)
         known = np.empty((L, LEAF, LEAF, LEAF), bool)
         lstart = np.append(first, len(blocks)).astype(np.int64)
         bad, clamped, nvalid = eval_leaves(
             blocks, block, float(h), np.arange(len(blocks), dtype=np.int64), *pool.arrays(), *pool.oracle.arrays(),
             int(pool.length.max()), lstart, order.astype(np.int64), imin, imax, FINITE_LIMIT,
-            np.float32(-1.0), values, act, known)
+            np.float32(-1.0), values, known)
         if bad < 0:
             _fill_inside_cells(values, sk[first], levels.inside, 1.0)
+            act = np.empty((L, LEAF, LEAF, LEAF), bool)  # every flag is set by mark_band
             grid = BlockGrid(h, -1.0, leaf_of[order[first]], values, act)  # sorted keys: rows stay valid
     t2 = time.perf_counter()
     levels.stats["evaluator"] = "tape"
@@ -521,7 +521,7 @@ def _assemble_leaves(blocks, b, vals, valid, inside_levels, h, bg) -> tuple[Bloc
     keys, first, rows = np.unique(pack_keys(leaf_of), return_index=True, return_inverse=True)
     L = len(keys)
     values = np.full((L, LEAF, LEAF, LEAF), -bg, np.float32)
-    act = np.zeros((L, LEAF, LEAF, LEAF), bool)
+    act = np.empty((L, LEAF, LEAF, LEAF), bool)  # every flag is set by mark_band
     known = np.zeros((L, LEAF, LEAF, LEAF), bool)
     _scatter(values, known, rows.reshape(-1), blocks - leaf_of, vals, valid, np.float32(-bg))
     _fill_inside_cells(values, keys, inside_levels, bg)

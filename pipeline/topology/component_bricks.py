@@ -24,10 +24,11 @@ Driver side (:func:`unify`): the local labels are nodes of a graph whose edges a
    to its six face neighbours.
 ``scipy.sparse.csgraph.connected_components`` merges the nodes; the clusters are renumbered in
 scan order (``_scan_order``) and the cells sorted in the whole-domain pass's order (level, inside
-before border, Morton order of the subdivision), so the result equals ``detect``: same cell set,
-same labels, same volumes (to rounding of the sums). The continuation cells are the one
-exception to the row order: the whole-domain pass appends them after the subdivided border cells
-in the order it reaches them, here they are in Morton order among them; set and labels agree.
+before border, then packed key: the subdivision makes every level in key order), so the result
+equals ``detect``: same cell set, same labels, same volumes (to rounding of the sums). The
+continuation cells are the one exception to the row order: the whole-domain pass appends them
+after the subdivided cells in the order it reaches them, here they are in key order among them;
+set and labels agree.
 """
 
 from __future__ import annotations
@@ -222,7 +223,7 @@ def unify(parts: list[BrickCells], cuts: list[np.ndarray], model, origin, size: 
     else:
         count, raw = 0, np.zeros(0, np.int64)
 
-    order = np.lexsort((_morton(coords, depth), kind, level))  # the whole-domain pass's row order
+    order = np.lexsort((cc.pack(coords), kind, level))  # the whole-domain pass's row order
     tree = cc.Octree(origin, float(size), depth, level[order], coords[order], kind[order], frac[order], st)
     st["inside_cells"] = int((tree.kind == cc.INSIDE).sum())
     st["border_cells"] = int((tree.kind == cc.BORDER).sum())
@@ -301,12 +302,3 @@ def _fix_pairs(level, coords, kind, frac, origin, size, depth, n_fix) -> tuple[n
         ok = nb >= 0
         out_a.append(rows[ok]), out_b.append(nb[ok])
     return np.concatenate(out_a), np.concatenate(out_b)
-
-
-def _morton(coords: np.ndarray, bits: int) -> np.ndarray:
-    """Morton key (x bit above y above z per level): the order of Algorithm 1's subdivision."""
-    key = np.zeros(len(coords), np.int64)
-    for b in range(bits):
-        for a in range(3):
-            key |= ((coords[:, a] >> b) & 1) << (3 * b + 2 - a)
-    return key

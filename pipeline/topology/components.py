@@ -1018,20 +1018,41 @@ def truncate(tree: Octree, level: int) -> Octree:
 def _truncate(tree: Octree, level: int) -> tuple[Octree, np.ndarray]:
     """:func:`truncate`, and the row of every cell of ``tree`` in the truncated tree (itself, or
     its ancestor at ``level``)."""
-    deep = tree.level > level
-    drows = np.flatnonzero(deep)
-    keys, inv = unique_keys(pack_rows(tree.coords, drows, tree.level[drows] - level))
-    anc = unpack(keys) if len(keys) else np.zeros((0, 3), np.int64)
-    keep = ~deep
-    nk, n = int(np.count_nonzero(keep)), len(anc)
-    rows = np.empty(len(tree), np.int64)
-    rows[keep] = np.arange(nk)
-    rows[deep] = nk + inv.reshape(-1)
-    return Octree(tree.origin, tree.size, level,
-                  np.concatenate([tree.level[keep], np.full(n, level)]),
-                  np.concatenate([tree.coords[keep], anc]),
-                  np.concatenate([tree.kind[keep], np.full(n, BORDER, np.int8)]),
-                  np.concatenate([tree.pos_frac[keep], np.full(n, 0.5)]), dict(tree.stats)), rows
+    lv = np.ascontiguousarray(tree.level, dtype=np.int64)
+    drows = np.flatnonzero(lv > level)
+    keys, inv = unique_keys(pack_rows(tree.coords, drows, lv[drows] - level))
+    out = _truncated(lv, np.ascontiguousarray(tree.coords, dtype=np.int64), tree.kind,
+                     np.ascontiguousarray(tree.pos_frac, dtype=np.float64), int(level), keys,
+                     inv.reshape(-1) if inv is not None else np.zeros(0, np.int64))
+    return Octree(tree.origin, tree.size, level, *out[:4], dict(tree.stats)), out[4]
+
+
+@numba.njit(cache=True)
+def _truncated(level, coords, kind, frac, lv, anc_keys, inv):
+    """:func:`_truncate`'s arrays in one pass: the cells of level <= lv in order, then the
+    ancestors (``anc_keys``, sorted; ``inv``: each deep cell's, in row order) as border cells;
+    and the row of every old cell in the new arrays."""
+    n_old = level.shape[0]
+    nk = n_old - inv.shape[0]
+    n = nk + anc_keys.shape[0]
+    ol, oc, ok, of = np.empty(n, np.int64), np.empty((n, 3), np.int64), np.empty(n, np.int8), np.empty(n)
+    rows = np.empty(n_old, np.int64)
+    a = 0
+    d = 0
+    for r in range(n_old):
+        if level[r] > lv:
+            rows[r] = nk + inv[d]
+            d += 1
+            continue
+        ol[a], ok[a], of[a] = level[r], kind[r], frac[r]
+        oc[a, 0], oc[a, 1], oc[a, 2] = coords[r, 0], coords[r, 1], coords[r, 2]
+        rows[r] = a
+        a += 1
+    for u in range(anc_keys.shape[0]):
+        q = anc_keys[u]
+        ol[nk + u], ok[nk + u], of[nk + u] = lv, BORDER, 0.5
+        oc[nk + u, 0], oc[nk + u, 1], oc[nk + u, 2] = (q >> (2 * _BITS)) & _MASK, (q >> _BITS) & _MASK, q & _MASK
+    return ol, oc, ok, of, rows
 
 
 def coarsest_same_count(comp: Components) -> tuple[Components, dict[int, int]]:

@@ -139,7 +139,7 @@ def weld_kernel(points: np.ndarray, bits: np.ndarray, triangles: np.ndarray) -> 
     for u in prange(len(first)):
         if used[u]:
             out_pts[remap[u]] = points[first[u]]
-    out_tris = np.empty((kept, 3), np.int64)
+    out_tris = np.empty((kept, 3), triangles.dtype)  # the index type of the input
     for t in prange(m):
         if keep[t]:
             for v in range(3):
@@ -223,12 +223,19 @@ def centroid_voxels(points: np.ndarray, triangles: np.ndarray, voxel_size: float
     return out
 
 
-@njit(cache=True, parallel=True)
-def split_polygons(tris: np.ndarray, quads: np.ndarray, flip: bool) -> np.ndarray:
+def split_polygons(tris: np.ndarray, quads: np.ndarray, flip: bool, out: np.ndarray | None = None) -> np.ndarray:
     """volumeToMesh's triangles, then each quad (a, b, c, d) as (a, b, c) and, after all of those,
-    (a, c, d); every row reversed when ``flip``. int64 (T + 2Q, 3)."""
+    (a, c, d); every row reversed when ``flip``. Into ``out`` (T + 2Q, 3) of any integer type
+    (int32 halves the mesh's largest array); int64 when None."""
+    if out is None:
+        out = np.empty((tris.shape[0] + 2 * quads.shape[0], 3), np.int64)
+    _split_into(tris, quads, flip, out)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _split_into(tris, quads, flip, out):
     nt, nq = tris.shape[0], quads.shape[0]
-    out = np.empty((nt + 2 * nq, 3), np.int64)
     first, last = (2, 0) if flip else (0, 2)
     for t in prange(nt):
         out[t, first], out[t, 1], out[t, last] = tris[t, 0], tris[t, 1], tris[t, 2]
@@ -236,7 +243,6 @@ def split_polygons(tris: np.ndarray, quads: np.ndarray, flip: bool) -> np.ndarra
         a, b, c, d = quads[q, 0], quads[q, 1], quads[q, 2], quads[q, 3]
         out[nt + q, first], out[nt + q, 1], out[nt + q, last] = a, b, c
         out[nt + nq + q, first], out[nt + nq + q, 1], out[nt + nq + q, last] = a, c, d
-    return out
 
 
 @njit(cache=True)

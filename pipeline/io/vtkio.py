@@ -309,7 +309,7 @@ class SurfaceMesh:
     """Triangle mesh, counter-clockwise seen from outside (normals point out of the solid)."""
 
     points: np.ndarray  # (N, 3) float32 world
-    triangles: np.ndarray  # (M, 3) int64
+    triangles: np.ndarray  # (M, 3) int32 (int64 beyond 2^31 points)
     normals: np.ndarray  # (N, 3) float32 unit point normals
     source: str  # the grid that was meshed
     isovalue: float
@@ -357,7 +357,10 @@ def default_isovalue(name: str, grid: Any) -> float:
 
 def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals."""
-    return unit_rows(vertex_normal_sums(np.ascontiguousarray(points), np.ascontiguousarray(triangles, dtype=np.int64)))
+    triangles = np.asarray(triangles)
+    if triangles.dtype not in (np.int32, np.int64):
+        triangles = triangles.astype(np.int64)
+    return unit_rows(vertex_normal_sums(np.ascontiguousarray(points), np.ascontiguousarray(triangles)))
 
 
 def triangle_labels(
@@ -368,8 +371,14 @@ def triangle_labels(
     The nearest of the 8 is the rounded centroid: where it holds a label that is the answer
     (one sample per triangle); only the other triangles read all 8 corners."""
     points = np.ascontiguousarray(points)
-    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
-    out = np.rint(sample_values(component, centroid_voxels(points, triangles, float(voxel_size)))).astype(np.int32)
+    triangles = np.ascontiguousarray(triangles)
+    if triangles.dtype not in (np.int32, np.int64):
+        triangles = triangles.astype(np.int64)
+    out = np.empty(len(triangles), np.int32)
+    # a chunk of triangles at a time: their centroid voxels (int64 (M, 3)) were 0.4 GB at 1024^3
+    for s in range(0, len(triangles), LABEL_CHUNK):
+        part = triangles[s:s + LABEL_CHUNK]
+        out[s:s + len(part)] = np.rint(sample_values(component, centroid_voxels(points, part, float(voxel_size))))
     todo = np.flatnonzero(out <= 0)
     if len(todo):
         c = points[triangles[todo]].astype(np.float64).mean(axis=1) / voxel_size
@@ -383,6 +392,9 @@ def triangle_labels(
     return np.maximum(out, 0).astype(np.int32)
 
 
+LABEL_CHUNK = 1 << 21  # triangles per centroid sampling pass of triangle_labels
+
+
 def weld(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Merge coincident points and drop degenerate (zero-area) triangles.
 
@@ -394,7 +406,10 @@ def weld(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndar
     if len(points) == 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64)
     points = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
-    return weld_kernel(points, points.view(np.uint32), np.ascontiguousarray(triangles, dtype=np.int64))
+    triangles = np.asarray(triangles)
+    if triangles.dtype not in (np.int32, np.int64):
+        triangles = triangles.astype(np.int64)
+    return weld_kernel(points, points.view(np.uint32), np.ascontiguousarray(triangles))
 
 
 def extract_surface(
@@ -414,8 +429,13 @@ def extract_surface(
     grid = grids[name]
     iso = default_isovalue(name, grid) if isovalue is None else float(isovalue)
     points, tris, quads = grid.convertToPolygons(isovalue=iso, adaptivity=float(adaptivity))
-    triangles = split_polygons(np.ascontiguousarray(tris).reshape(-1, 3), np.ascontiguousarray(quads).reshape(-1, 4),
-                               _needs_flip(name, grid))
+    tris, quads = np.ascontiguousarray(tris).reshape(-1, 3), np.ascontiguousarray(quads).reshape(-1, 4)
+    # int32 indices while they fit: the triangles are the mesh's largest arrays (17 M rows at
+    # 1024^3, where export's memory peaks)
+    index = np.int32 if len(points) < 2**31 else np.int64
+    triangles = split_polygons(tris, quads, _needs_flip(name, grid),
+                               np.empty((len(tris) + 2 * len(quads), 3), index))
+    del tris, quads
     points, triangles = weld(np.asarray(points, dtype=np.float32), triangles)
     labels = None
     if "component" in grids and len(triangles):
@@ -437,8 +457,11 @@ def mesh_polydata(mesh: SurfaceMesh) -> vtkPolyData:
     pts.SetData(_shared(mesh.points, np.float32, VTK_FLOAT))
     poly.SetPoints(pts)
     cells = vtkCellArray()
-    offsets = np.arange(0, 3 * len(mesh.triangles) + 1, 3, dtype=np.int64)
-    cells.SetData(_shared(offsets, np.int64, VTK_ID_TYPE), _shared(mesh.triangles.reshape(-1), np.int64, VTK_ID_TYPE))
+    # 32-bit cell storage for int32 triangles (vtkCellArray keeps either): no 64-bit copy
+    wide = mesh.triangles.dtype != np.int32
+    itype, vtype = (np.int64, VTK_ID_TYPE) if wide else (np.int32, VTK_INT)
+    offsets = np.arange(0, 3 * len(mesh.triangles) + 1, 3, dtype=itype)
+    cells.SetData(_shared(offsets, itype, vtype), _shared(mesh.triangles.reshape(-1), itype, vtype))
     poly.SetPolys(cells)
     normals = _shared(mesh.normals, np.float32, VTK_FLOAT)
     normals.SetName("Normals")

@@ -917,10 +917,11 @@ def _trig_range(lo, hi, phase):
     return mn, mx
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _interval(o, alo, ahi, blo, bhi, c):
     """Interval of one clause; returns (lo, hi, choice): choice 1/2 when min/max is decided by
-    operand a/b over the whole interval, else 0."""
+    operand a/b over the whole interval, else 0. Inlined into the bound walk (a call per clause
+    was ~10 % of the bound pass of a 10^4-sphere union)."""
     if o == ADD:
         return alo + blo, ahi + bhi, 0
     if o == SUB:

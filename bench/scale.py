@@ -311,18 +311,29 @@ def child_e2e(config: str, out: str) -> None:
 def _memory(proc: psutil.Process) -> int:
     """The job's memory: its RSS plus the pages private to its children (USS; Linux, RSS
     elsewhere). A forked .vdb writer shares the job's grids copy-on-write: summing RSS counted
-    them twice (6.3 GiB instead of 3.9 at 1024^3). Reading USS walks a process's page tables
-    under its memory lock, which slowed the job itself by 40 % when it was sampled every 20 ms
-    for the job too, so only the children's are read that way."""
+    them twice (6.3 GiB instead of 3.9 at 1024^3). Reading USS walks a process's whole page
+    table: sampled every 20 ms for the job it slowed the job by 40 %, and for a writer child at
+    2048^3 (~13 GiB mapped) the walks took most of a core from the job (components 84 s in the
+    benchmark against 57 s in-process), so a child's USS is read at most every
+    CHILD_USS_INTERVAL seconds and its last value is used in between."""
+    now = time.monotonic()
     total = proc.memory_info().rss
     for c in proc.children(recursive=True):
         try:
-            total += int(c.memory_full_info().uss)
+            seen = _CHILD_USS.get(c.pid)
+            if seen is None or now - seen[0] >= CHILD_USS_INTERVAL:
+                seen = (now, int(c.memory_full_info().uss))
+                _CHILD_USS[c.pid] = seen
+            total += seen[1]
         except (AttributeError, psutil.AccessDenied):
             total += int(c.memory_info().rss)
         except psutil.NoSuchProcess:
             pass
     return total
+
+
+CHILD_USS_INTERVAL = 0.5  # seconds between two USS reads of one child (they grow as they write)
+_CHILD_USS: dict[int, tuple[float, int]] = {}
 
 
 def run_e2e(folder: Path, n: int, stage_limit: float = 900.0, interval: float = 0.02,
@@ -334,6 +345,7 @@ def run_e2e(folder: Path, n: int, stage_limit: float = 900.0, interval: float = 
     passes ``max_rss_gib`` (default: 90 % of this machine's memory, so a run that cannot fit
     stops before the kernel's OOM killer picks a process on a shared machine)."""
     limit_rss = (max_rss_gib * 2**30) if max_rss_gib else 0.9 * psutil.virtual_memory().total
+    _CHILD_USS.clear()
     cfg = demo_config(folder, n)
     proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--child-e2e", str(cfg),
                              str(folder / "out_e2e")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

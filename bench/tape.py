@@ -73,17 +73,18 @@ def main() -> None:
         run(warm, False)
         for res in args.res:
             sphere_cost = None
-            est = 0.0
-            models = [("sphere", "  sphere: {radius: 0.8}"), ("demo", demo)]
-            models += [(f"union of {n} spheres", spheres(n)) for n in args.parts]
-            for name, model in models:
+            last = (0.0, 1)  # (node-by-node seconds, parts) of the last model run that way
+            models = [("sphere", "  sphere: {radius: 0.8}", 1), ("demo", demo, 1)]
+            models += [(f"union of {n} spheres", spheres(n), n) for n in args.parts]
+            for name, model, parts in models:
                 job = job_for(model, res, Path(tmp))
                 ts, st = run(job, True)
                 per = 1e6 * ts / max(1, st["active_voxels"])
                 sphere_cost = per if name == "sphere" else sphere_cost
-                if est <= args.node_limit:
+                # the node-by-node anchor costs about its part count times the last one's
+                if last[0] * parts / last[1] <= args.node_limit:
                     tn, sn = run(job, False)
-                    est = tn * 10  # the next part count is 10x larger
+                    last = (tn, parts)
                     nodes, ev_n, speed = f"{tn:.2f}", str(sn["voxels_evaluated"]), f"{tn / ts:.1f}x"
                 else:
                     nodes, ev_n, speed = "skipped", "-", "-"

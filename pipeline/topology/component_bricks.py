@@ -284,12 +284,8 @@ def _finish_continuation(parts, level, coords, model, origin, size, depth, t, re
     cells, signs, _ = cc._continuation(missing, signs, cache, depth, origin, size, region, sub, have=have)
     st["continuation_cells"] += len(missing) + sub["continuation_cells"]
     st["corner_evaluations"] += cache.evaluations
-    kinds = cc._finest_kinds(cells, signs)
-    c = np.concatenate([kinds[cc.INSIDE][0], kinds[cc.BORDER][0]])
-    k = np.concatenate([np.full(len(kinds[cc.INSIDE][0]), cc.INSIDE, np.int8),
-                        np.full(len(kinds[cc.BORDER][0]), cc.BORDER, np.int8)])
-    f = np.concatenate([kinds[cc.INSIDE][1], kinds[cc.BORDER][1]])
-    return c.reshape(-1, 3).astype(np.int64), k, f
+    _, c, k, f = cc._with_finest(cc.no_cells(), (cells, signs), depth)  # inside, then border cells
+    return c, k, f
 
 
 def _fix_pairs(level, coords, kind, frac, origin, size, depth, n_fix) -> tuple[np.ndarray, np.ndarray]:

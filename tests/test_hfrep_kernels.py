@@ -73,7 +73,7 @@ def test_fim_dirty_faces_give_the_full_sweeps_result() -> None:
     seeds = np.nonzero((saved["state"] == fm.FROZEN).reshape(len(got), -1).any(axis=1))[0]
     ref = saved["d"].copy()
     lists, counts, on_list, dirty = fm._seed_lists(saved["colour"], seeds, len(ref))
-    buf, sbuf, fbuf = np.empty((12, 12, 12)), np.zeros((12, 12, 12), bool), np.empty((12, 12, 12), bool)
+    buf, sbuf, mask = np.empty((12, 12, 12)), np.zeros((12, 12, 12), bool), np.empty((12, 12), np.int64)
     c = 0 if counts[0] >= counts[1] else 1
     visits = 0
     while counts[0] + counts[1] > 0:
@@ -82,7 +82,7 @@ def test_fim_dirty_faces_give_the_full_sweeps_result() -> None:
             out = np.zeros((len(work), 3), np.int64)
             for t, b in enumerate(work):
                 out[t] = fm.relax_block(ref, saved["state"], saved["inside"], saved["nbr27"], b, saved["limit"], 1e-6,
-                                       64, True, buf, sbuf, fbuf, np.inf, 63)
+                                       64, True, buf, sbuf, mask, np.inf, 63)
             fm._finish_wave(work, out, saved["nbr27"], saved["colour"], lists, counts, on_list, dirty)
             visits += len(work)
         c = 1 - c

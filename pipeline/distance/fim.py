@@ -53,7 +53,7 @@ def upwind3(b0, w0, b1, w1, b2, w2):
         b1, b2, w1, w2 = b2, b1, w2, w1
     if b0 > b1:
         b0, b1, w0, w1 = b1, b0, w1, w0
-    u = b0 + 1.0 / math.sqrt(w0)
+    u = b0 + (1.0 if w0 == 1.0 else 2.0 / 3.0)  # 1 / c: no square root and division on the chain
     if u <= b1:
         return u
     a = w0 + w1
@@ -61,7 +61,7 @@ def upwind3(b0, w0, b1, w1, b2, w2):
     disc = s * s - a * (w0 * b0 * b0 + w1 * b1 * b1 - 1.0)
     if disc < 0.0:
         return u
-    u = (s + math.sqrt(disc)) / a
+    u = (s + math.sqrt(disc)) * 0.5 if a == 2.0 else (s + math.sqrt(disc)) / a  # both first order: exact halving
     if u <= b2:
         return u
     a += w2
@@ -104,7 +104,7 @@ def _axis_term(buf, sbuf, i, j, k, di, dj, dk, me, order2):
 
 
 @njit(cache=True)
-def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf, sbuf, fbuf, limit_in=np.inf,
+def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf, sbuf, mask, limit_in=np.inf,
                 dirty=63):
     """Gauss-Seidel sweeps (alternating the 8 orderings) until block b converges.
 
@@ -114,36 +114,23 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
     (inside voxels) is never accepted. Returns (bitmask of faces whose ghost layers changed,
     voxel updates, sweeps).
 
-    ``fbuf`` (12,12,12) flags the voxels whose stencil changed: the first sweep evaluates every
-    voxel, later ones only those with an axis neighbour within ``depth`` (the stencil's reach)
-    updated since their last evaluation. The update of a voxel is a function of those
-    neighbours (its own value only enters the acceptance test, and it is unchanged since the
-    voxel's last evaluation, or set by it), so a skipped voxel would not have changed: the
-    same updates in the same order as evaluating every voxel in every sweep, at less cost.
+    ``mask`` (12,12) int64 flags, per buffer row (i, j), the voxels whose stencil changed (bit
+    k of the row for buffer voxel k): the first sweep evaluates every voxel, later ones only
+    those with an axis neighbour within ``depth`` (the stencil's reach) updated since their
+    last evaluation, and a row without a flagged free voxel is passed over at once. The update
+    of a voxel is a function of those neighbours (its own value only enters the acceptance
+    test, and it is unchanged since the voxel's last evaluation, or set by it), so a skipped
+    voxel would not have changed: the same updates in the same order as evaluating every voxel
+    in every sweep, at less cost.
     """
     _load_block(d, inside, nbr27, b, buf, sbuf)
     depth = 2 if order2 else 1  # ghost layers a neighbour reads
     faces = 0
     updates = 0
     sweeps = 0
-    st = state[b]
-    if dirty == 63:
-        fbuf[:] = True
-    else:  # the block was stable after its last visit: only voxels that read a changed ghost layer
-        fbuf[:] = False
-        for r in range(depth):
-            if dirty & 1:
-                fbuf[2 + r, 2:10, 2:10] = True
-            if dirty & 2:
-                fbuf[9 - r, 2:10, 2:10] = True
-            if dirty & 4:
-                fbuf[2:10, 2 + r, 2:10] = True
-            if dirty & 8:
-                fbuf[2:10, 9 - r, 2:10] = True
-            if dirty & 16:
-                fbuf[2:10, 2:10, 2 + r] = True
-            if dirty & 32:
-                fbuf[2:10, 2:10, 9 - r] = True
+    free = _free_rows(state[b])
+    _start_mask(mask, dirty, depth)
+    changed = False
     for it in range(max_sweeps):
         sweeps += 1
         changed = False
@@ -151,12 +138,18 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
             i = ii if (it & 1) == 0 else 7 - ii
             for jj in range(8):
                 j = jj if (it & 2) == 0 else 7 - jj
+                fr = free[i, j]
+                if (mask[i + 2, j + 2] & fr) == 0:  # nothing to evaluate in this row
+                    mask[i + 2, j + 2] = 0
+                    continue
                 for kk in range(8):
                     k = kk if (it & 4) == 0 else 7 - kk
-                    if not fbuf[i + 2, j + 2, k + 2]:
+                    bit = 1 << (k + 2)
+                    row = mask[i + 2, j + 2]  # read again: an update in this row flags k +- 1, 2
+                    if (row & bit) == 0:
                         continue
-                    fbuf[i + 2, j + 2, k + 2] = False
-                    if st[i, j, k] != FREE:
+                    mask[i + 2, j + 2] = row & ~bit
+                    if (fr & bit) == 0:
                         continue
                     me = sbuf[i + 2, j + 2, k + 2]
                     bx, wx = _axis_term(buf, sbuf, i + 2, j + 2, k + 2, 1, 0, 0, me, order2)
@@ -181,13 +174,14 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
                     buf[i + 2, j + 2, k + 2] = u
                     updates += 1
                     changed = True
+                    along = 0
                     for r in range(1, depth + 1):  # the voxels whose stencil holds this one
-                        fbuf[i + 2 - r, j + 2, k + 2] = True
-                        fbuf[i + 2 + r, j + 2, k + 2] = True
-                        fbuf[i + 2, j + 2 - r, k + 2] = True
-                        fbuf[i + 2, j + 2 + r, k + 2] = True
-                        fbuf[i + 2, j + 2, k + 2 - r] = True
-                        fbuf[i + 2, j + 2, k + 2 + r] = True
+                        mask[i + 2 - r, j + 2] |= bit
+                        mask[i + 2 + r, j + 2] |= bit
+                        mask[i + 2, j + 2 - r] |= bit
+                        mask[i + 2, j + 2 + r] |= bit
+                        along |= (bit >> r) | (bit << r)
+                    mask[i + 2, j + 2] |= along
                     faces |= (i < depth) * 1 | (i >= 8 - depth) * 2 | (j < depth) * 4
                     faces |= (j >= 8 - depth) * 8 | (k < depth) * 16 | (k >= 8 - depth) * 32
         if not changed:
@@ -200,6 +194,46 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
                 for k in range(8):
                     d[b, i, j, k] = buf[i + 2, j + 2, k + 2]
     return faces, updates, sweeps
+
+
+ROW_BITS = 0x3FC  # bits 2..9: the block's own voxels of a (12,)-row of the ghosted buffer
+
+
+@njit(cache=True, inline="always")
+def _free_rows(st):
+    """(8,8) bit rows of the block's FREE voxels (bit k + 2 for voxel k), the layout of the mask."""
+    free = np.empty((8, 8), np.int64)
+    for i in range(8):
+        for j in range(8):
+            m = 0
+            for k in range(8):
+                if st[i, j, k] == FREE:
+                    m |= 1 << (k + 2)
+            free[i, j] = m
+    return free
+
+
+@njit(cache=True, inline="always")
+def _start_mask(mask, dirty, depth):
+    """The first sweep's flags: every voxel (dirty = 63), or the ``depth`` layers next to each
+    face whose ghost layers changed since the block was last stable."""
+    mask[:] = 0
+    if dirty == 63:
+        mask[2:10, 2:10] = ROW_BITS
+        return
+    for r in range(depth):
+        if dirty & 1:
+            mask[2 + r, 2:10] = ROW_BITS
+        if dirty & 2:
+            mask[9 - r, 2:10] = ROW_BITS
+        if dirty & 4:
+            mask[2:10, 2 + r] = ROW_BITS
+        if dirty & 8:
+            mask[2:10, 9 - r] = ROW_BITS
+        if dirty & 16:
+            mask[2:10, 2:10] |= 1 << (2 + r)
+        if dirty & 32:
+            mask[2:10, 2:10] |= 1 << (9 - r)
 
 
 def fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, limit_in=np.inf):
@@ -278,10 +312,10 @@ def _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty):
 @njit(cache=True)
 def _relax_range(d, state, inside, nbr27, work, lo, hi, limit, tol, max_sweeps, order2, buf, sbuf, out, limit_in,
                  dirty):
-    fbuf = np.empty((12, 12, 12), dtype=np.bool_)
+    mask = np.empty((12, 12), dtype=np.int64)
     for t in range(lo, hi):
         out[t, 0], out[t, 1], out[t, 2] = relax_block(d, state, inside, nbr27, work[t], limit, tol, max_sweeps,
-                                                      order2, buf, sbuf, fbuf, limit_in, dirty[work[t]])
+                                                      order2, buf, sbuf, mask, limit_in, dirty[work[t]])
 
 
 @njit(cache=True)

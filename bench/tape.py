@@ -3,7 +3,7 @@
 For each model and resolution, voxelise (band 3, block 4) twice in one process — once with the
 tape (pipeline.model.tape: interval bounds, exact min/max pruning per cell, clause-major evaluation)
 and once with the node-by-node affine bounds and NumPy evaluation — after a warm-up of the
-compiled kernels, and print: seconds, voxels evaluated, active voxels, microseconds per active
+compiled kernels, and print: seconds (the tape: median of ``--repeat`` runs), voxels evaluated, active voxels, microseconds per active
 voxel, the speed-up, the mean tape length of the blocks, and the cost per active voxel relative
 to one sphere's in the same run.
 
@@ -45,12 +45,17 @@ def spheres(n: int, seed: int = 0) -> str:
     return f"  union:\n    rfunc: min_max\n    of:\n{rows}"
 
 
-def run(job, tape: bool) -> tuple[float, dict]:
+def run(job, tape: bool, repeat: int = 1) -> tuple[float, dict]:
+    """Median seconds of ``repeat`` voxelise calls (a sphere at 256^3 takes ~0.05 s: one call
+    is too short to time; its ratio to the union moved 2.9x-5.0x between single runs)."""
     vox.USE_TAPE = tape
     d = job.domain
-    t0 = time.perf_counter()
-    r = vox.voxelise(job.model, d.index_min, d.index_max, d.voxel_size, 3.0, 4, job.t)
-    return time.perf_counter() - t0, r.stats
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        r = vox.voxelise(job.model, d.index_min, d.index_max, d.voxel_size, 3.0, 4, job.t)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), r.stats
 
 
 def main() -> None:
@@ -59,6 +64,7 @@ def main() -> None:
     ap.add_argument("--parts", nargs="+", type=int, default=[10, 100, 1000, 10000])
     ap.add_argument("--node-limit", type=float, default=120.0)
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--repeat", type=int, default=5, help="tape runs per row (the median is printed)")
     args = ap.parse_args()
     if args.quick:
         args.res, args.parts = [64], [10, 100]
@@ -78,7 +84,7 @@ def main() -> None:
             models += [(f"union of {n} spheres", spheres(n), n) for n in args.parts]
             for name, model, parts in models:
                 job = job_for(model, res, Path(tmp))
-                ts, st = run(job, True)
+                ts, st = run(job, True, args.repeat)
                 per = 1e6 * ts / max(1, st["active_voxels"])
                 sphere_cost = per if name == "sphere" else sphere_cost
                 # the node-by-node anchor costs about its part count times the last one's

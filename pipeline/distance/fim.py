@@ -30,6 +30,7 @@ import math
 import numba
 import numpy as np
 from numba import njit
+from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from pipeline.field.stencils import central_gradient_at, half_difference
 from pipeline.sparse.access import ALL27, FACE_ROWS27, FACES27, OWN_ROWS, load_ghosts
@@ -143,15 +144,25 @@ def relax_block(d, state, inside, nbr27, b, limit, tol, max_sweeps, order2, buf,
                 if (mask[i + 2, j + 2] & fr) == 0:  # nothing to evaluate in this row
                     mask[i + 2, j + 2] = 0
                     continue
-                for kk in range(8):
-                    k = kk if (it & 4) == 0 else 7 - kk
-                    bit = 1 << (k + 2)
-                    row = mask[i + 2, j + 2]  # read again: an update in this row flags k +- 1, 2
-                    if (row & bit) == 0:
-                        continue
+                up = (it & 4) == 0
+                kb = 1 if up else 10  # bit of the last voxel evaluated in this row (k + 2)
+                while True:
+                    # the next flagged free voxel in sweep order, the row read again: an update
+                    # flags k +- 1, 2, and those ahead are evaluated in this sweep
+                    row = mask[i + 2, j + 2]
+                    if up:
+                        ahead = row & fr & -(2 << kb)
+                        if ahead == 0:
+                            break
+                        kb = trailing_zeros(ahead)
+                    else:
+                        ahead = row & fr & ((1 << kb) - 1)
+                        if ahead == 0:
+                            break
+                        kb = 63 - leading_zeros(ahead)
+                    bit = 1 << kb
                     mask[i + 2, j + 2] = row & ~bit
-                    if (fr & bit) == 0:
-                        continue
+                    k = kb - 2
                     me = sbuf[i + 2, j + 2, k + 2]
                     bx, wx = _axis_term(buf, sbuf, i + 2, j + 2, k + 2, 1, 0, 0, me, order2)
                     by, wy = _axis_term(buf, sbuf, i + 2, j + 2, k + 2, 0, 1, 0, me, order2)

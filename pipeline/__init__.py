@@ -10,7 +10,7 @@ from pathlib import Path
 #: modules whose compiled functions are called by compiled functions of other modules
 KERNEL_PROVIDERS = (
     "mesh/bsp_minmax.py", "distance/fim.py", "distance/eikonal.py", "mesh/bsp_build.py", "field/rkernels.py",
-    "sparse/access.py", "sparse/grid.py", "field/stencils.py",
+    "sparse/access.py", "sparse/grid.py", "field/stencils.py", "field/zeroset.py",
 )
 
 

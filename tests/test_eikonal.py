@@ -143,15 +143,22 @@ def test_no_less_accurate_than_scikit_fmm_order_2(name: str) -> None:
     ours, theirs, exact = _vs_scikit_fmm(name)
     near = np.abs(exact) <= 10 * 2.0 / 96
     assert ours[near].mean() <= theirs[near].mean()
-    if name != "box":
-        assert ours[near].max() <= theirs[near].max()
-
-
-@pytest.mark.xfail(strict=True, reason="convex box corners (point-source fans): max 0.94 voxel vs skfmm's 0.73")
-def test_box_corner_max_error_matches_scikit_fmm() -> None:
-    ours, theirs, exact = _vs_scikit_fmm("box")
-    near = np.abs(exact) <= 10 * 2.0 / 96
+    # the box's convex corners included: the voxels diagonal to a corner are frozen next to
+    # the kink (max 0.94 voxel before, in the corner fans; skfmm 0.73)
     assert ours[near].max() <= theirs[near].max()
+
+
+def test_box_corner_fans_within_half_a_voxel() -> None:
+    """Outside a box's convex corners the distance is a point-source fan; the voxels diagonal to
+    the corner have no axis neighbour inside and were left to the FIM, 0.88 voxel too far in
+    the first shell and 0.96 beyond (session 16). Frozen next to the kink, the whole region
+    the stage solves (10 voxels out, the inside shell) stays within 0.45 voxel."""
+    ours, _, exact = _vs_scikit_fmm("box")
+    h = 2.0 / 96
+    near = np.abs(exact) <= 10 * h
+    assert ours[near].max() <= 0.45 * h
+    first = (exact > 0) & (exact < h)  # outside, within a voxel of the surface (0.19 voxel; was 0.88)
+    assert ours[first].max() <= 0.25 * h
 
 
 def _grad_magnitudes(name: str, n: int = 128, order: int = 2) -> np.ndarray:

@@ -33,6 +33,7 @@ from numba import njit
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from pipeline.field.stencils import central_gradient_at, half_difference
+from pipeline.field.zeroset import zero_set_distance
 from pipeline.sparse.access import ALL27, FACE_ROWS27, FACES27, OWN_ROWS, load_ghosts
 
 FREE, FROZEN, EXCLUDED = 0, 1, 2
@@ -516,7 +517,19 @@ def _init_rows(f, fact, brow, d, state, nbr27, quadric, rows, counts):
                         count += 1
                         continue
                     cap, g2 = _crossing_cap(fbuf, abuf, i + 1, j + 1, k + 1, fv)
-                    if cap == np.inf:
+                    if cap == np.inf:  # no axis neighbour across the surface
+                        if not quadric or _quadric_fit(fbuf, abuf, i + 1, j + 1, k + 1, g, hess, vals):
+                            continue  # smooth there: the FIM solves it from its neighbours
+                        # next to a kink (a convex corner or edge, where the surface passes
+                        # diagonally): the FIM's fan from the axis-crossing layer is up to a
+                        # voxel too far, so it is frozen like the others, capped by the zero
+                        # set of the piecewise-linear interpolant in its cells
+                        cap = zero_set_distance(fbuf, abuf, i + 1, j + 1, k + 1)
+                        if cap == np.inf:
+                            continue
+                        d[b, i, j, k] = min(abs(fv) / math.sqrt(g2) if g2 > 0.0 else cap, cap)
+                        state[b, i, j, k] = FROZEN
+                        count += 1
                         continue
                     dist = np.inf
                     if quadric and _quadric_fit(fbuf, abuf, i + 1, j + 1, k + 1, g, hess, vals):

@@ -518,7 +518,9 @@ def _init_rows(f, fact, brow, d, state, nbr27, quadric, rows, counts):
                         continue
                     cap, g2 = _crossing_cap(fbuf, abuf, i + 1, j + 1, k + 1, fv)
                     if cap == np.inf:  # no axis neighbour across the surface
-                        if not quadric or _quadric_fit(fbuf, abuf, i + 1, j + 1, k + 1, g, hess, vals):
+                        if not quadric or not _diagonal_crossing(fbuf, abuf, i + 1, j + 1, k + 1, fv):
+                            continue  # not next to the surface (most band voxels): cheap test first
+                        if _quadric_fit(fbuf, abuf, i + 1, j + 1, k + 1, g, hess, vals):
                             continue  # smooth there: the FIM solves it from its neighbours
                         # next to a kink (a convex corner or edge, where the surface passes
                         # diagonally): the FIM's fan from the axis-crossing layer is up to a
@@ -545,6 +547,19 @@ def _init_rows(f, fact, brow, d, state, nbr27, quadric, rows, counts):
                     count += 1
         counts[t, 0] = count
         counts[t, 1] = n_quad
+
+
+@njit(cache=True, inline="always")
+def _diagonal_crossing(fb, ab, i, j, k, fv):
+    """Whether one of the 26 known neighbours of buffer voxel (i, j, k) lies across the
+    surface (a cube with an unknown sample gives no zero-set distance anyway)."""
+    pos = fv > 0.0
+    for a in range(i - 1, i + 2):
+        for b in range(j - 1, j + 2):
+            for c in range(k - 1, k + 2):
+                if ab[a, b, c] and (fb[a, b, c] > 0.0) != pos:
+                    return True
+    return False
 
 
 @njit(cache=True)

@@ -723,3 +723,31 @@ def test_keep_then_hfrep_every_written_voxel_on_the_kept_side(tmp_path):
         written_inside = (v > 0.5) if name == "density" else ((v > 0) if positive_inside else (v < 0))
         far = np.abs(kept) > margin * h
         assert np.array_equal(written_inside[far], kept[far] > 0), name
+
+
+def test_order_keeping_passes_give_the_one_range_result() -> None:
+    """_split_into and _truncated split their input into ranges run in parallel; any number of
+    ranges gives the arrays of one range (a serial pass): same cells, same order."""
+    from pipeline.topology import components as cc
+
+    rng = np.random.default_rng(7)
+    m, n0 = 50_000, 7_000
+    signs = rng.choice(np.array([0, 255, 3, 17, 128], np.uint8), m)
+    cells = rng.integers(0, 1024, (m, 3))
+    coarse = (rng.integers(0, 10, n0), rng.integers(0, 1024, (n0, 3)), rng.integers(0, 3, n0).astype(np.int8),
+              rng.random(n0))
+    one = cc._split_into(*coarse, cells, signs, 10, 1)
+    assert len(one[0]) == n0 + int((signs != 0).sum()) and (one[2][n0:][:int((signs == 255).sum())] == cc.INSIDE).all()
+    for chunks in (2, 7, 64):
+        assert all(np.array_equal(a, b) for a, b in zip(one, cc._split_into(*coarse, cells, signs, 10, chunks),
+                                                          strict=True))
+    level = rng.integers(0, 8, m)
+    deep = level > 4
+    inv = rng.integers(0, 300, int(deep.sum()))
+    anc = np.sort(rng.choice(1 << 30, 300, replace=False)).astype(np.int64)
+    kind, frac = signs.astype(np.int8), rng.random(m)
+    one = cc._truncated(level, cells, kind, frac, 4, anc, inv, 1)
+    assert (one[4][deep] == int((~deep).sum()) + inv).all()  # deep cells: their ancestor's row
+    for chunks in (2, 7, 64):
+        got = cc._truncated(level, cells, kind, frac, 4, anc, inv, chunks)
+        assert all(np.array_equal(a, b) for a, b in zip(one, got, strict=True))

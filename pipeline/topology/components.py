@@ -825,31 +825,50 @@ def _with_finest(coarse: tuple, finest: tuple | None, depth: int) -> tuple:
     if finest is None:
         return coarse
     cells, signs = finest
-    return _split_into(*coarse, np.ascontiguousarray(cells, dtype=np.int64), signs, depth)
+    return _split_into(*coarse, np.ascontiguousarray(cells, dtype=np.int64), signs, depth,
+                       _chunk_count(len(signs) + len(coarse[0])))
 
 
-@numba.njit(cache=True)
-def _split_into(level, coords, kind, frac, cells, signs, depth):
-    n0 = level.shape[0]
-    n_in = n_bo = 0
-    for r in range(signs.shape[0]):
-        if signs[r] == 255:
-            n_in += 1
-        elif signs[r] != 0:
-            n_bo += 1
+def _chunk_count(n: int) -> int:
+    """Ranges for the order-keeping parallel passes (a few per thread; one for small inputs)."""
+    return max(1, min(8 * numba.get_num_threads(), n // 65536))
+
+
+@numba.njit(cache=True, parallel=True)
+def _split_into(level, coords, kind, frac, cells, signs, depth, chunks):
+    """The coarse cells (level, coords, kind, frac) followed by the finest ``cells`` by their
+    corner ``signs`` (a bit per corner): inside (255) in order, then border (mixed) in order,
+    outside (0) dropped. In parallel over ``chunks`` ranges of the finest cells: counted, then
+    written at their ranges' offsets, so the order is that of a serial pass."""
+    n0, m = level.shape[0], signs.shape[0]
+    cnt = np.zeros((chunks + 1, 2), np.int64)
+    for c in numba.prange(chunks):
+        for r in range(c * m // chunks, (c + 1) * m // chunks):
+            s = signs[r]
+            if s == 255:
+                cnt[c + 1, 0] += 1
+            elif s != 0:
+                cnt[c + 1, 1] += 1
+    for c in range(chunks):
+        cnt[c + 1] += cnt[c]
+    n_in, n_bo = cnt[chunks, 0], cnt[chunks, 1]
     n = n0 + n_in + n_bo
     lv, co, ki, fr = np.empty(n, np.int64), np.empty((n, 3), np.int64), np.empty(n, np.int8), np.empty(n)
-    lv[:n0], co[:n0], ki[:n0], fr[:n0] = level, coords, kind, frac
-    lv[n0:] = depth
-    a, b = n0, n0 + n_in
-    for r in range(signs.shape[0]):
-        s = signs[r]
-        if s == 255:
-            co[a], ki[a], fr[a] = cells[r], INSIDE, 1.0
-            a += 1
-        elif s != 0:
-            co[b], ki[b], fr[b] = cells[r], BORDER, _POPCOUNT[s] / 8.0
-            b += 1
+    for c in numba.prange(chunks):  # pages first touched by the threads that write them
+        for r in range(c * n0 // chunks, (c + 1) * n0 // chunks):
+            lv[r], ki[r], fr[r] = level[r], kind[r], frac[r]
+            co[r, 0], co[r, 1], co[r, 2] = coords[r, 0], coords[r, 1], coords[r, 2]
+        a, b = n0 + cnt[c, 0], n0 + n_in + cnt[c, 1]
+        for r in range(c * m // chunks, (c + 1) * m // chunks):
+            s = signs[r]
+            if s == 255:
+                lv[a], ki[a], fr[a] = depth, INSIDE, 1.0
+                co[a, 0], co[a, 1], co[a, 2] = cells[r, 0], cells[r, 1], cells[r, 2]
+                a += 1
+            elif s != 0:
+                lv[b], ki[b], fr[b] = depth, BORDER, _POPCOUNT[s] / 8.0
+                co[b, 0], co[b, 1], co[b, 2] = cells[r, 0], cells[r, 1], cells[r, 2]
+                b += 1
     return lv, co, ki, fr
 
 
@@ -1007,32 +1026,41 @@ def _truncate(tree: Octree, level: int) -> tuple[Octree, np.ndarray]:
     keys, inv = unique_keys(pack_rows(tree.coords, drows, lv[drows] - level))
     out = _truncated(lv, np.ascontiguousarray(tree.coords, dtype=np.int64), tree.kind,
                      np.ascontiguousarray(tree.pos_frac, dtype=np.float64), int(level), keys,
-                     inv.reshape(-1) if inv is not None else np.zeros(0, np.int64))
+                     inv.reshape(-1) if inv is not None else np.zeros(0, np.int64), _chunk_count(len(lv)))
     return Octree(tree.origin, tree.size, level, *out[:4], dict(tree.stats)), out[4]
 
 
-@numba.njit(cache=True)
-def _truncated(level, coords, kind, frac, lv, anc_keys, inv):
+@numba.njit(cache=True, parallel=True)
+def _truncated(level, coords, kind, frac, lv, anc_keys, inv, chunks):
     """:func:`_truncate`'s arrays in one pass: the cells of level <= lv in order, then the
     ancestors (``anc_keys``, sorted; ``inv``: each deep cell's, in row order) as border cells;
-    and the row of every old cell in the new arrays."""
+    and the row of every old cell in the new arrays. In parallel over ``chunks`` ranges of the
+    old cells (kept and deep cells counted per range first: the serial pass's order)."""
     n_old = level.shape[0]
     nk = n_old - inv.shape[0]
     n = nk + anc_keys.shape[0]
+    kept = np.zeros(chunks + 1, np.int64)
+    for c in numba.prange(chunks):
+        for r in range(c * n_old // chunks, (c + 1) * n_old // chunks):
+            kept[c + 1] += level[r] <= lv
+    for c in range(chunks):
+        kept[c + 1] += kept[c]
     ol, oc, ok, of = np.empty(n, np.int64), np.empty((n, 3), np.int64), np.empty(n, np.int8), np.empty(n)
     rows = np.empty(n_old, np.int64)
-    a = 0
-    d = 0
-    for r in range(n_old):
-        if level[r] > lv:
-            rows[r] = nk + inv[d]
-            d += 1
-            continue
-        ol[a], ok[a], of[a] = level[r], kind[r], frac[r]
-        oc[a, 0], oc[a, 1], oc[a, 2] = coords[r, 0], coords[r, 1], coords[r, 2]
-        rows[r] = a
-        a += 1
-    for u in range(anc_keys.shape[0]):
+    for c in numba.prange(chunks):
+        lo = c * n_old // chunks
+        a = kept[c]
+        d = lo - kept[c]  # deep cells before this range
+        for r in range(lo, (c + 1) * n_old // chunks):
+            if level[r] > lv:
+                rows[r] = nk + inv[d]
+                d += 1
+                continue
+            ol[a], ok[a], of[a] = level[r], kind[r], frac[r]
+            oc[a, 0], oc[a, 1], oc[a, 2] = coords[r, 0], coords[r, 1], coords[r, 2]
+            rows[r] = a
+            a += 1
+    for u in numba.prange(anc_keys.shape[0]):
         q = anc_keys[u]
         ol[nk + u], ok[nk + u], of[nk + u] = lv, BORDER, 0.5
         oc[nk + u, 0], oc[nk + u, 1], oc[nk + u, 2] = (q >> (2 * _BITS)) & _MASK, (q >> _BITS) & _MASK, q & _MASK

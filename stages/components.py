@@ -85,11 +85,21 @@ def run(ctx, p: Params) -> dict:
     # the integer labels themselves: the batched writer converts them a batch at a time (a float32
     # copy of them all was 0.3 GB of fresh memory and 0.6 s at 1024^3)
     blocks = ctx.get(FrepBand).blocks  # the kept pieces' when keep: removed some
-    lab = BlockGrid(blocks.voxel_size, 0.0, blocks.origins, labels, blocks.active)
-    ctx.grids["component"] = _label_grid(ctx, p, lab, found)
-    del lab
-    if p.separate:
-        section.update(_separate(ctx, p, found, labels, kept, depth if fine_is_voxel else None))
+    pending = []
+    try:
+        if p.separate:
+            sep, pending = _separate(ctx, p, found, labels, kept, depth if fine_is_voxel else None)
+            section.update(sep)
+        # the label grid is made while the last pieces' .vdb files are still being written
+        lab = BlockGrid(blocks.voxel_size, 0.0, blocks.origins, labels, blocks.active)
+        ctx.grids["component"] = _label_grid(ctx, p, lab, found)
+        del lab
+        while pending:
+            pending.pop(0).wait()
+    except BaseException:
+        for w in pending:
+            w.cancel()
+        raise
     ctx.manifest["components"] = section
     st = dict(found.tree.stats)
     st.update({"count": found.count, "cells": len(found.tree), "labelling_seconds": round(found.seconds, 4)})
@@ -169,9 +179,11 @@ def _label_grid(ctx, p: Params, lab: BlockGrid, found: cc.Components):
 
 
 def _separate(ctx, p: Params, found: cc.Components, labels: np.ndarray, kept: list[int],
-              voxel_depth: int | None) -> dict:
+              voxel_depth: int | None) -> tuple[dict, list]:
     """One .vdb per component: the field f AND g_k (section 4.3) on the voxels labelled k
-    (``voxel_depth``: the octree level whose cell is one voxel, None when there is none)."""
+    (``voxel_depth``: the octree level whose cell is one voxel, None when there is none).
+    Returns the section's numbers and the writers still at work (at most two; the caller
+    waits for them, or cancels them if it fails)."""
     sep, mapping = cc.coarsest_same_count(found) if p.adaptive else (found, {k: k for k in kept})
     frep = ctx.get(FrepBand)
     blocks = frep.blocks
@@ -196,13 +208,11 @@ def _separate(ctx, p: Params, found: cc.Components, labels: np.ndarray, kept: li
                                                            "component": int(k)}))
             ctx.add_output(path, "vdb")
             files.append(path.name)
-        while pending:
-            pending.pop(0).wait()
     except BaseException:
         for w in pending:
             w.cancel()
         raise
-    return {"files": files, "method": p.method, "separation_depth": int(sep.tree.depth)}
+    return {"files": files, "method": p.method, "separation_depth": int(sep.tree.depth)}, pending
 
 
 def _piece_blocks(blocks: BlockGrid, labels: np.ndarray, k: int, field: cc.ClusterField,

@@ -517,7 +517,8 @@ def _init_rows(f, fact, brow, d, state, nbr27, quadric, rows, counts):
                         count += 1
                         continue
                     cap, g2 = _crossing_cap(fbuf, abuf, i + 1, j + 1, k + 1, fv)
-                    if cap == np.inf:  # no axis neighbour across the surface
+                    kink = cap == np.inf  # no axis neighbour across the surface
+                    if kink:
                         if not quadric or not _diagonal_crossing(fbuf, abuf, i + 1, j + 1, k + 1, fv):
                             continue  # not next to the surface (most band voxels): cheap test first
                         if _quadric_fit(fbuf, abuf, i + 1, j + 1, k + 1, g, hess, vals):
@@ -529,12 +530,8 @@ def _init_rows(f, fact, brow, d, state, nbr27, quadric, rows, counts):
                         cap = zero_set_distance(fbuf, abuf, i + 1, j + 1, k + 1)
                         if cap == np.inf:
                             continue
-                        d[b, i, j, k] = min(abs(fv) / math.sqrt(g2) if g2 > 0.0 else cap, cap)
-                        state[b, i, j, k] = FROZEN
-                        count += 1
-                        continue
                     dist = np.inf
-                    if quadric and _quadric_fit(fbuf, abuf, i + 1, j + 1, k + 1, g, hess, vals):
+                    if quadric and not kink and _quadric_fit(fbuf, abuf, i + 1, j + 1, k + 1, g, hess, vals):
                         dist = closest_point_distance(fv, g, hess)
                         if dist > cap + 0.1:
                             dist = np.inf

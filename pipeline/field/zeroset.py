@@ -47,7 +47,7 @@ def origin_triangle_distance(ax, ay, az, bx, by, bz, cx, cy, cz):
         return math.sqrt(bx * bx + by * by + bz * bz)
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        v = d1 / (d1 - d3) if d1 > d3 else 0.0  # a == b: degenerate, any point of ab
+        v = d1 / (d1 - d3)  # d1 - d3 = |ab|^2 > 0: not degenerate
         return _norm(ax + v * abx, ay + v * aby, az + v * abz)
     d5 = -(abx * cx + aby * cy + abz * cz)
     d6 = -(acx * cx + acy * cy + acz * cz)
@@ -55,16 +55,13 @@ def origin_triangle_distance(ax, ay, az, bx, by, bz, cx, cy, cz):
         return math.sqrt(cx * cx + cy * cy + cz * cz)
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        w = d2 / (d2 - d6) if d2 > d6 else 0.0
+        w = d2 / (d2 - d6)  # |ac|^2
         return _norm(ax + w * acx, ay + w * acy, az + w * acz)
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
-        den = (d4 - d3) + (d5 - d6)
-        w = (d4 - d3) / den if den > 0.0 else 0.0
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))  # |bc|^2
         return _norm(bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz))
-    s = va + vb + vc
-    if not s > 0.0:  # degenerate (collinear) triangle: the nearest of its vertices
-        return min(_norm(ax, ay, az), min(_norm(bx, by, bz), _norm(cx, cy, cz)))
+    s = va + vb + vc  # |ab x ac|^2 > 0
     v, w = vb / s, vc / s
     return _norm(ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w)
 

@@ -7,10 +7,11 @@ import os
 import sys
 from pathlib import Path
 
-#: modules whose compiled functions are called by compiled functions of other modules
+#: modules whose compiled functions are called by compiled functions of other modules, and the
+#: decorator that compiles them all (its options, such as the error model, are not in Numba's key)
 KERNEL_PROVIDERS = (
     "mesh/bsp_minmax.py", "distance/fim.py", "distance/eikonal.py", "mesh/bsp_build.py", "field/rkernels.py",
-    "sparse/access.py", "sparse/grid.py", "field/stencils.py", "field/zeroset.py",
+    "sparse/access.py", "sparse/grid.py", "field/stencils.py", "field/zeroset.py", "util/jit.py",
 )
 
 

@@ -40,7 +40,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 from scipy import ndimage
 
 from pipeline.distance.eikonal_bricks import BrickedFIM
@@ -48,6 +48,7 @@ from pipeline.distance.fim import EXCLUDED, FREE, FROZEN, block_colour, fim, ini
 from pipeline.sparse.access import FACE_DIRS, block_lattice, block_neighbours, block_neighbours27
 from pipeline.sparse.blockwrite import LeafSource, mapped_empty, release_rows
 from pipeline.sparse.grid import LEAF, BlockGrid, merge_sorted, pack_keys
+from pipeline.util.jit import njit
 
 SECOND_ORDER_VISITS = 50  # block visits per block before a second-order pass is abandoned
 

@@ -29,12 +29,12 @@ import math
 
 import numba
 import numpy as np
-from numba import njit
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from pipeline.field.stencils import central_gradient_at, half_difference
 from pipeline.field.zeroset import zero_set_distance
 from pipeline.sparse.access import ALL27, FACE_ROWS27, FACES27, OWN_ROWS, load_ghosts
+from pipeline.util.jit import njit
 
 FREE, FROZEN, EXCLUDED = 0, 1, 2
 PARALLEL_BLOCKS = 4096  # blocks (2 M voxels) from which the FIM runs its waves on all threads

@@ -37,13 +37,14 @@ from dataclasses import dataclass, field
 
 import numba
 import numpy as np
-from numba import njit, prange
+from numba import prange
 from scipy import ndimage
 
 from pipeline.distance.eikonal import SECOND_ORDER_VISITS, EikonalResult, solve_distance
 from pipeline.distance.fim import EXCLUDED, FREE, FROZEN, fim, upwind3
 from pipeline.sparse.access import FACES6, OWN_ROWS, block_neighbours, block_neighbours27, load_ghosts
 from pipeline.sparse.grid import LEAF, BlockGrid
+from pipeline.util.jit import njit
 
 LEVEL_CELLS = (8, 128)  # cell edge in voxels of levels 1, 2: an OpenVDB leaf and an internal-node child
 

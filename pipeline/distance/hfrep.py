@@ -26,13 +26,14 @@ import math
 from collections.abc import Callable
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 from scipy.special import expit
 
 from pipeline.distance.eikonal import EikonalResult
 from pipeline.distance.spline import TricubicSpline
 from pipeline.sparse.blockwrite import LeafSource, mapped_empty
 from pipeline.sparse.grid import LEAF, BlockGrid, merge_sorted, pack_keys
+from pipeline.util.jit import njit
 
 STEPS = ("sigmoid", "tanh", "rational")
 

@@ -21,11 +21,11 @@ from collections.abc import Callable
 
 import numba
 import numpy as np
-from numba import njit
 
 from pipeline.field.stencils import central_gradient_at
 from pipeline.sparse.access import FACES6, OWN_ROWS, block_neighbours, load_ghosts, load_padded, load_padded_rows
 from pipeline.sparse.grid import BlockGrid
+from pipeline.util.jit import njit
 
 
 @njit(cache=True)

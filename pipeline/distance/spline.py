@@ -26,10 +26,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from pipeline.sparse.access import block_lattice, block_neighbours, lattice_row
 from pipeline.sparse.grid import BlockGrid
+from pipeline.util.jit import njit
 
 POLE = math.sqrt(3.0) - 2.0
 

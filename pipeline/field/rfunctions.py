@@ -34,9 +34,9 @@ versions.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from pipeline.field import rkernels as rk
+from pipeline.util.jit import njit
 
 FAMILIES = ("min_max", "r0", "sardf")
 SARDF_K = 0.5  # half-width of the smoothing window (|f1-f2| < k*rho); must be < 1 to stay an R-function

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
+from pipeline.util.jit import njit
 
 
 @njit(cache=True, inline="always")

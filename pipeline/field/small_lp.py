@@ -19,7 +19,8 @@ ten microseconds per problem.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from pipeline.util.jit import njit
 
 EPS = 1e-12
 MAX_PIVOTS = 10_000

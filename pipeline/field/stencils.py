@@ -15,7 +15,7 @@ kernels that inline these keep their machine code only while this file is unchan
 
 from __future__ import annotations
 
-from numba import njit
+from pipeline.util.jit import njit
 
 
 @njit(cache=True, inline="always")

@@ -16,7 +16,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from pipeline.util.jit import njit
 
 # the Kuhn tetrahedra of the unit cube: from corner 0 to corner (1,1,1) one axis at a time,
 # in each of the six orders

@@ -12,7 +12,9 @@ occurrence instead of byte order.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
+
+from pipeline.util.jit import njit
 
 _EMPTY = -1
 

@@ -16,10 +16,11 @@ import math
 from collections.abc import Callable
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from pipeline.sparse.blockwrite import LeafSource
 from pipeline.sparse.grid import LEAF, LEAF_LOG2, BlockGrid, coalesce_boxes, leaf_has_active, pack_keys
+from pipeline.util.jit import njit
 
 try:  # OpenVDB >= 11 names the module openvdb
     import openvdb as vdb  # type: ignore[import-not-found]

@@ -29,7 +29,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
+
+from pipeline.util.jit import njit
 
 if TYPE_CHECKING:  # trimesh takes ~0.3 s to import; only the type is needed here
     import trimesh

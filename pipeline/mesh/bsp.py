@@ -41,7 +41,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 from scipy.optimize import linprog
 
 from pipeline.field.rfunctions import FAMILIES, SARDF_K
@@ -51,6 +51,7 @@ from pipeline.mesh import bsp_minmax
 from pipeline.mesh.bsp_build import BIG_NODE, plane_ids, subtree_sizes
 from pipeline.mesh.bsp_build import build as _build_compiled
 from pipeline.mesh.bsp_minmax import GENERAL, LEAF_NODE, NEG_ONLY, POS_ONLY, SPECIAL_B, SPECIAL_C
+from pipeline.util.jit import njit
 
 if TYPE_CHECKING:  # trimesh takes ~0.3 s to import; only the type is needed here
     import trimesh

@@ -17,7 +17,8 @@ The recursion runs on flat arrays in one Numba function with an explicit stack, 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from pipeline.util.jit import njit
 
 HALF_PI = 0.5 * np.pi
 BIG_NODE = 4096  # triangles from which a node is kept in a bounding-volume hierarchy

@@ -31,7 +31,9 @@ the per-cell specialisation of a mesh clause of the tape (pipeline.model.tape).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
+
+from pipeline.util.jit import njit
 
 # node modes of the compiled tree; MIN2 / MAX2 (no plane: min / max of the two subtrees) occur
 # only in the evaluation tree of :func:`regroup_chains`

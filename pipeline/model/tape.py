@@ -36,7 +36,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from pipeline.field.rkernels import compress, r0_and, sardf_and
 from pipeline.mesh.bsp_minmax import (
@@ -51,6 +51,7 @@ from pipeline.mesh.bsp_minmax import (
     surface_bvh,
     tree_depth,
 )
+from pipeline.util.jit import njit
 
 # --- opcodes ------------------------------------------------------------------------------------
 X, Y, Z, CONST, ADD, SUB, MUL, DIV, NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, MIN, MAX, R0AND, \

@@ -40,15 +40,15 @@ instead of leaving stale machine code in the cache.
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from pipeline.field.rkernels import compress, r0_and
 from pipeline.mesh.bsp_minmax import box_bound
 from pipeline.model import tape as _tp
+from pipeline.util.jit import njit
 
 # --- opcodes (pipeline.model.tape's; checked below) --------------------------------------------------------
 X, Y, Z, CONST, ADD, SUB, MUL, DIV, NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, MIN, MAX, R0AND, \
@@ -68,7 +68,7 @@ _TWO_PI = 2.0 * math.pi
 _K_SQRT, _K_EXP, _K_LOG, _K_RECIP, _K_RPOW, _K_IPOW = range(6)
 
 # IEEE division (x / 0 is inf or NaN, never an exception): every result is checked by _sound
-_jit = functools.partial(njit, cache=True, error_model="numpy")
+_jit = njit  # pipeline.util.jit: NumPy's error model is the default
 
 
 # --- form helpers (a form is the tuple (c, g0, g1, g2, e)) ---------------------------------------------

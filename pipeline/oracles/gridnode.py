@@ -7,13 +7,13 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from numba import njit
 from pydantic import Field
 from scipy import ndimage
 
 from pipeline.field.affine import AffineForm
 from pipeline.io.vdbio import read_dense
 from pipeline.model.base import Node, Params, register
+from pipeline.util.jit import njit
 
 MAX_DENSE = 512**3  # voxels of the active bounding box we are prepared to hold densely
 

@@ -40,7 +40,6 @@ import functools
 from typing import Any, ClassVar, Literal, NamedTuple
 
 import numpy as np
-from numba import njit
 from pydantic import Field, model_validator
 
 from pipeline.distance.eikonal import solve_distance
@@ -49,6 +48,7 @@ from pipeline.distance.spline import TricubicSpline
 from pipeline.field.affine import AffineForm
 from pipeline.model.base import Node, Params, Real, Vec3, register
 from pipeline.util.errors import InputError
+from pipeline.util.jit import njit
 from pipeline.voxel.voxelise import voxelise
 
 _ROUND = 1e-12  # relative allowance for the spline sum, step and products (>> float64 rounding)

@@ -14,9 +14,10 @@ lists, per block, the row of the block at each offset (in blocks), -1 where ther
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from pipeline.sparse.grid import LEAF, BlockGrid, pack_keys
+from pipeline.util.jit import njit
 
 #: the six face directions, in the column order of :func:`block_neighbours` (-x, +x, -y, +y, -z, +z)
 FACE_DIRS = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], dtype=np.int64)

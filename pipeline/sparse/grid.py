@@ -15,7 +15,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
+
+from pipeline.util.jit import njit
 
 LEAF = 8
 LEAF_LOG2 = 3

@@ -35,6 +35,7 @@ from pipeline.model.tape import compile_model, evaluate_with
 from pipeline.model.tape_affine import affine_bounds
 from pipeline.sparse.access import ALL27, OWN_ROWS, block_neighbours27, load_ghosts
 from pipeline.sparse.grid import KEY_BITS, KEY_OFFSET, LEAF, key3, key_of
+from pipeline.util.jit import njit
 
 INSIDE, BORDER = 1, 2
 _BITS = KEY_BITS  # packed keys of cell coordinates (< 2**21): pipeline.sparse.grid.key_of
@@ -70,7 +71,7 @@ def pack_rows(coords: np.ndarray, rows: np.ndarray | None = None, shift: np.ndar
     return _pack_rows(coords, rows, every, shift)
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _pack_rows(coords, rows, every, shift):
     n = shift.shape[0]
     out = np.empty(n, np.int64)
@@ -81,7 +82,7 @@ def _pack_rows(coords, rows, every, shift):
     return out
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _level_keys(level, coords, c, off):
     """Packed keys and rows of the cells of the levels finer than ``c``, level l at
     ``off[l]:off[l+1]`` in row order (one pass, one array each)."""
@@ -115,7 +116,7 @@ def unique_keys(keys: np.ndarray, inverse: bool = True) -> tuple[np.ndarray, np.
     return _ranks(keys, np.argsort(keys, kind="stable"))
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _ranks(keys, order):
     """(unique keys, inverse) of ``keys`` given their stable sorting order, in one pass (the
     gathered, compared, summed and scattered temporaries of 10M keys took ~0.4 s at 1024^3)."""
@@ -220,7 +221,7 @@ class Octree:
         return self.find(self.depth, ijk)
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def _lower_bound(keys, lo, hi, q):
     """First index in the sorted keys[lo:hi] whose key is not below q (hi when none)."""
     while lo < hi:
@@ -232,7 +233,7 @@ def _lower_bound(keys, lo, hi, q):
     return lo
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def _bsearch(keys, lo, hi, q):
     """Index of ``q`` in the sorted ``keys[lo:hi]``, -1 when absent."""
     at = _lower_bound(keys, lo, hi, q)
@@ -242,7 +243,7 @@ def _bsearch(keys, lo, hi, q):
 COARSE_LEVEL = 7  # levels up to this one are looked up in a dense table (8^7 rows: 16 MiB)
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _paint_coarse(level, coords, c, coarse):
     """Every kept cell of level <= c writes its row over the level-c cells it covers (kept
     cells never overlap: the writes never meet)."""
@@ -257,7 +258,7 @@ def _paint_coarse(level, coords, c, coarse):
                     coarse[(x << (2 * c)) | (y << c) | z] = r
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def _find_one(x, y, z, level, keys, rows, off, levels, coarse, c):
     """Row of the kept cell (level, x, y, z) or of its nearest kept ancestor, -1 when none:
     a binary search per level finer than c, then one lookup in the dense level-c table."""
@@ -281,7 +282,7 @@ def _find_one(x, y, z, level, keys, rows, off, levels, coarse, c):
     return r if r >= 0 and levels[r] <= level else -1
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _find_rows(coords, level, keys, rows, off, levels, coarse, c):
     """Octree.find compiled, both cores."""
     out = np.empty(coords.shape[0], np.int64)
@@ -290,7 +291,7 @@ def _find_rows(coords, level, keys, rows, off, levels, coarse, c):
     return out
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _root(parent, a):
     while parent[a] != a:
         parent[a] = parent[parent[a]]  # path halving
@@ -319,7 +320,7 @@ def _face_union(level, coords, keys, rows, off, levels, coarse, c):
     return _cluster_ids(parent)
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _union_rows(parent, rows, nbr):
     """Join cell rows[i] with every neighbour nbr[i, f] >= 0 (union by smaller root)."""
     for i in range(rows.shape[0]):
@@ -336,7 +337,7 @@ def _union_rows(parent, rows, nbr):
                     parent[a] = b
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _cluster_ids(parent):
     n = parent.shape[0]
     ids = np.full(n, -1, np.int64)
@@ -351,7 +352,7 @@ def _cluster_ids(parent):
     return out, count
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _face_neighbours(level, coords, keys, rows, off, levels, coarse, c, which):
     """(len(which), 6): the row of the same-level or coarser kept cell across each face of the
     cells ``which`` (+x, -x, +y, -y, +z, -z), -1 where none; both cores."""
@@ -368,7 +369,7 @@ def _face_neighbours(level, coords, keys, rows, off, levels, coarse, c, which):
     return nbr
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _level_neighbours(keys, rows, off, levels, coarse, c, lv, i0, i1):
     """:func:`_face_neighbours` of the level-``lv`` cells keys[i0:i1] (a slice of that level's
     sorted table, c < lv): moving every key one cell along an axis keeps their order, so the
@@ -484,7 +485,7 @@ def _child_corner_signs(cache: _CornerCache, parents: np.ndarray, psigns: np.nda
     return out
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _new_lattice_points(parents, offsets, scale, origin, step):
     """World points of the 19 lattice points per parent that are not parent corners."""
     out = np.empty((parents.shape[0] * offsets.shape[0], 3))
@@ -495,7 +496,7 @@ def _new_lattice_points(parents, offsets, scale, origin, step):
     return out
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _assemble_children(psigns, new, from_parent, even, odd, child_idx):
     """(P*8,) child corner signs from the parents' corner signs and the new lattice points'."""
     n = psigns.shape[0]
@@ -544,7 +545,7 @@ def _in_region(coords: np.ndarray, level: int, origin, size, rlo, rhi) -> np.nda
                         np.broadcast_to(np.asarray(rhi, float), 3).copy())
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _region_mask(coords, c, origin, rlo, rhi):
     out = np.empty(coords.shape[0], np.bool_)
     for r in numba.prange(coords.shape[0]):
@@ -579,7 +580,7 @@ def _sorted_children(parents: np.ndarray, csigns: np.ndarray) -> tuple[np.ndarra
     return _children_in_key_order(parents, csigns, starts)
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _children_in_key_order(parents, csigns, starts):
     """Children of the sorted parents, x-run by x-run (run [i, j) fills rows 8i..8j): per child
     x, the parents' y-runs, per child y, each parent's two children in z."""
@@ -608,7 +609,7 @@ def _children_in_key_order(parents, csigns, starts):
     return out, sout
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _child_coords(coords, rows, corners):
     out = np.empty((rows.shape[0] * 8, 3), np.int64)
     for i in numba.prange(rows.shape[0]):
@@ -618,7 +619,7 @@ def _child_coords(coords, rows, corners):
     return out
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _missing_edge_neighbours(keys, signs, have, limit):
     """Algorithm 1, continuation: for every edge whose end signs differ, the cells sharing the
     edge that are not in ``have`` (sorted packed keys). ``keys``: the cells' packed keys,
@@ -647,13 +648,13 @@ def _missing_edge_neighbours(keys, signs, have, limit):
     return out
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def _moved(q0, q1, q2, axis, d):
     """(q0, q1, q2) moved by d along ``axis``."""
     return q0 + d * (axis == 0), q1 + d * (axis == 1), q2 + d * (axis == 2)
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def _gallop(keys, j, hi, q):
     """First index >= j in the sorted keys[:hi] whose key is not below q (hi when none): steps
     of 1, 2, 4, ... from j, then a binary search in the last step (cost log of the distance)."""
@@ -666,7 +667,7 @@ def _gallop(keys, j, hi, q):
     return _lower_bound(keys, lo, min(j, hi), q)
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _edge_neighbours(keys, signs, have, limit, i, ptr, out, at):
     """The missing edge neighbours of the cell keys[i], written to out[at:] when out has rows;
     their count. ``ptr``: per neighbour offset, the position in ``have`` of the previous query
@@ -834,7 +835,7 @@ def _chunk_count(n: int) -> int:
     return max(1, min(8 * numba.get_num_threads(), n // 65536))
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _split_into(level, coords, kind, frac, cells, signs, depth, chunks):
     """The coarse cells (level, coords, kind, frac) followed by the finest ``cells`` by their
     corner ``signs`` (a bit per corner): inside (255) in order, then border (mixed) in order,
@@ -965,7 +966,7 @@ def summarise(tree: Octree, labels: np.ndarray, count: int, t0: float) -> Compon
     return Components(tree, labels, int(count), est, np.stack([lo, hi], 1), time.perf_counter() - t0)
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _volume_sums(labels, level, kind, frac, table, count):
     """Per label 1..count: the sums of cell volume x fraction, of inside cells' volumes and of all
     volumes, in row order (what np.bincount with those weights adds)."""
@@ -990,7 +991,7 @@ def _scan_order(tree: Octree, raw: np.ndarray, count: int) -> np.ndarray:
     return remap[raw]
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _first_keys(coords, level, depth, raw, count):
     """Per label 1..count (index 0 unused): the smallest packed key of its cells' lowest
     finest-level corners (np.minimum.at of pack(coords << (depth - level)), 1 s at 10M cells)."""
@@ -1030,7 +1031,7 @@ def _truncate(tree: Octree, level: int) -> tuple[Octree, np.ndarray]:
     return Octree(tree.origin, tree.size, level, *out[:4], dict(tree.stats)), out[4]
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _truncated(level, coords, kind, frac, lv, anc_keys, inv, chunks):
     """:func:`_truncate`'s arrays in one pass: the cells of level <= lv in order, then the
     ancestors (``anc_keys``, sorted; ``inv``: each deep cell's, in row order) as border cells;
@@ -1124,14 +1125,14 @@ def point_labels(comp: Components, points: np.ndarray) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _block_row(bkeys, x, y, z):
     """Row of the block with origin (x, y, z) in the sorted pack_keys ``bkeys``, -1 if absent."""
     q = key3(x + KEY_OFFSET, y + KEY_OFFSET, z + KEY_OFFSET)
     return _bsearch(bkeys, 0, bkeys.shape[0], q)
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _paint_cells(bkeys, level, coords, labels, depth, imin, lab, fine, mark_fine):
     """Write every kept cell's label into the voxels of the blocks it covers (a cell of level
     ``depth`` = one voxel: cell c holds voxel imin + c << (depth - level)); with ``mark_fine``,
@@ -1163,7 +1164,7 @@ def _paint_cells(bkeys, level, coords, labels, depth, imin, lab, fine, mark_fine
     return painted
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _nearest_fine(active, lab, fine, nbr27, offsets):
     """Active voxels outside every kept cell take the label of the nearest finest-cell voxel
     (``offsets`` sorted by length, all shorter than a block: the first hit is the nearest).
@@ -1249,7 +1250,7 @@ def block_labels(comp: Components, blocks, index_min) -> np.ndarray:
 # --- section 4.3: separation fields ------------------------------------------------------------------
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _box_query(qlo, qhi, blo, bhi, bkeys, border, binsize, reach, mode, init):
     """For query boxes (points when qlo == qhi): mode 0 -> min Euclidean distance from the query
     point to the boxes; mode 1 -> interval (lo, hi) of max_i min_axis g_i over the query box, with
@@ -1299,7 +1300,7 @@ def _box_query(qlo, qhi, blo, bhi, bkeys, border, binsize, reach, mode, init):
     return out_lo, out_hi
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _group_candidates(glo, ghi, c, rg, blo, bhi, bkeys, border, binsize, reach, init):
     """Boxes that can be nearer than ``init`` to a point of the group (bounding box glo..ghi,
     centre c, radius rg), sorted by their distance from c; returns (rows, distances)."""
@@ -1335,7 +1336,7 @@ def _group_candidates(glo, ghi, c, rg, blo, bhi, bkeys, border, binsize, reach, 
     return rows[:n][order], dist[:n][order]
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _grouped_distance(pts, order, gstart, blo, bhi, bkeys, border, binsize, reach, init):
     """Mode 0 of :func:`_box_query` (min distance from each point to the boxes, at most
     ``init``) for points grouped in space (``order[gstart[g]:gstart[g+1]]``): the candidate
@@ -1384,7 +1385,7 @@ def _grouped_distance(pts, order, gstart, blo, bhi, bkeys, border, binsize, reac
 _BIN_OFFSET = 1 << 19  # _BoxIndex's bin keys: (bin + offset) packed in 21 bits per axis
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _separated_piece(rows, origins, active, labels, piece, values, inside, h, blo, bhi, bkeys, cstart,
                      binsize, reach, clamp, background):
     """f AND g (r0) on the active voxels labelled ``piece`` of the blocks ``rows`` (section 4.3),
@@ -1445,7 +1446,7 @@ def _separated_piece(rows, origins, active, labels, piece, values, inside, h, bl
     return out, act
 
 
-@numba.njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _rows_with_label(active, labels, piece):
     """Rows of the blocks with an active voxel labelled ``piece`` (in order)."""
     has = np.zeros(active.shape[0], np.bool_)

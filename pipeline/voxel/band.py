@@ -28,11 +28,12 @@ word operations per row; only the distance test reads values.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from pipeline.field.stencils import half_difference
 from pipeline.sparse.access import block_neighbours
 from pipeline.sparse.grid import LEAF, BlockGrid
+from pipeline.util.jit import njit
 
 MAX_STEP = LEAF - 1  # voxels a dilation pass may reach into a neighbour leaf
 

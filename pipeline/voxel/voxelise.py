@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from pipeline.model.base import Node
 from pipeline.model.tape import (
@@ -49,6 +49,7 @@ from pipeline.model.tape import (
     specialise,
 )
 from pipeline.sparse.grid import LEAF, LEAF_LOG2, BlockGrid, pack_keys
+from pipeline.util.jit import njit
 from pipeline.voxel.band import cull_pad_voxels, mark_band
 
 BOUND_CHUNK = 200_000  # boxes per affine call at most (memory ~ 100 bytes x ops x boxes)

@@ -1301,37 +1301,44 @@ def _box_query(qlo, qhi, blo, bhi, bkeys, border, binsize, reach, mode, init):
 
 
 @njit(cache=True)
-def _group_candidates(glo, ghi, c, rg, blo, bhi, bkeys, border, binsize, reach, init):
-    """Boxes that can be nearer than ``init`` to a point of the group (bounding box glo..ghi,
-    centre c, radius rg), sorted by their distance from c; returns (rows, distances)."""
+def _gather(glo, ghi, c, rg, blo, bhi, bkeys, s0, s1, border, binsize, reach, init, rows, dist, n):
+    """Append to rows/dist[n:] the boxes s0 <= s < s1 (one size class) that can be nearer than
+    ``init`` to a point of the group (bounding box glo..ghi, centre c, radius rg), with their
+    distances from c; the buffers double when full. Returns (rows, dist, n)."""
     x0 = int(np.floor((glo[0] - reach) / binsize))
     x1 = int(np.floor((ghi[0] + reach) / binsize))
     y0 = int(np.floor((glo[1] - reach) / binsize))
     y1 = int(np.floor((ghi[1] + reach) / binsize))
     z0 = int(np.floor((glo[2] - reach) / binsize))
     z1 = int(np.floor((ghi[2] + reach) / binsize))
-    rows = np.empty(64, np.int64)
-    dist = np.empty(64)
-    n = 0
     for bx in range(x0, x1 + 1):
         for by in range(y0, y1 + 1):
-            for bz in range(z0, z1 + 1):
-                key = key3(bx + border, by + border, bz + border)
-                s = np.searchsorted(bkeys, key)
-                while s < bkeys.shape[0] and bkeys[s] == key:
-                    d2 = 0.0
-                    for a in range(3):
-                        g = max(blo[s, a] - c[a], 0.0, c[a] - bhi[s, a])
-                        d2 += g * g
-                    d = np.sqrt(d2)
-                    if d - rg < init:  # d(p, box) >= d(c, box) - |p - c|
-                        if n == rows.shape[0]:
-                            rows = np.concatenate((rows, np.empty(n, np.int64)))
-                            dist = np.concatenate((dist, np.empty(n)))
-                        rows[n] = s
-                        dist[n] = d
-                        n += 1
-                    s += 1
+            # the bins z0..z1 of a column are consecutive in key order: one search per column
+            s = s0 + np.searchsorted(bkeys[s0:s1], key3(bx + border, by + border, z0 + border))
+            last = key3(bx + border, by + border, z1 + border)
+            while s < s1 and bkeys[s] <= last:
+                d2 = 0.0
+                for a in range(3):
+                    g = max(blo[s, a] - c[a], 0.0, c[a] - bhi[s, a])
+                    d2 += g * g
+                d = np.sqrt(d2)
+                if d - rg < init:  # d(p, box) >= d(c, box) - |p - c|
+                    if n == rows.shape[0]:
+                        rows = np.concatenate((rows, np.empty(n, np.int64)))
+                        dist = np.concatenate((dist, np.empty(n)))
+                    rows[n] = s
+                    dist[n] = d
+                    n += 1
+                s += 1
+    return rows, dist, n
+
+
+@njit(cache=True)
+def _group_candidates(glo, ghi, c, rg, blo, bhi, bkeys, border, binsize, reach, init):
+    """Boxes that can be nearer than ``init`` to a point of the group (bounding box glo..ghi,
+    centre c, radius rg), sorted by their distance from c; returns (rows, distances)."""
+    rows, dist, n = _gather(glo, ghi, c, rg, blo, bhi, bkeys, 0, bkeys.shape[0], border, binsize, reach, init,
+                            np.empty(256, np.int64), np.empty(256), 0)
     order = np.argsort(dist[:n])
     return rows[:n][order], dist[:n][order]
 
@@ -1399,51 +1406,85 @@ def _separated_piece(rows, origins, active, labels, piece, values, inside, h, bl
     out = np.empty((n, 8, 8, 8), np.float32)
     act = np.zeros((n, 8, 8, 8), np.bool_)
     bg = np.float32(background)
-    for r in numba.prange(n):
-        b = rows[r]
-        glo = np.empty(3)
-        ghi = np.empty(3)
-        c = np.empty(3)
-        r2 = 0.0
-        for a in range(3):
-            glo[a] = origins[b, a] * h
-            ghi[a] = (origins[b, a] + 7) * h
-            c[a] = 0.5 * (glo[a] + ghi[a])
-            r2 += (0.5 * (ghi[a] - glo[a])) ** 2
-        rg = np.sqrt(r2) * (1.0 + 1e-9)  # >= |p - c| for every voxel centre p of the block
-        crow = np.empty(0, np.int64)
-        cdist = np.empty(0)
-        for cl in range(cstart.shape[0] - 1):
-            s0, s1 = cstart[cl], cstart[cl + 1]
-            rr, dd = _group_candidates(glo, ghi, c, rg, blo[s0:s1], bhi[s0:s1], bkeys[s0:s1], _BIN_OFFSET,
-                                       binsize[cl], reach[cl], clamp)
-            crow = np.concatenate((crow, rr + s0))
-            cdist = np.concatenate((cdist, dd))
-        order = np.argsort(cdist)
-        crow, cdist = crow[order], cdist[order]
-        for i in range(8):
-            for j in range(8):
-                for k in range(8):
-                    if not active[b, i, j, k] or labels[b, i, j, k] != piece:
-                        out[r, i, j, k] = bg
-                        continue
-                    p0, p1, p2 = (origins[b, 0] + i) * h, (origins[b, 1] + j) * h, (origins[b, 2] + k) * h
-                    dp = np.sqrt((p0 - c[0]) ** 2 + (p1 - c[1]) ** 2 + (p2 - c[2]) ** 2)
-                    best = clamp
-                    for m in range(crow.shape[0]):
-                        if cdist[m] - dp >= best:
-                            break
-                        s = crow[m]
-                        g0 = max(blo[s, 0] - p0, 0.0, p0 - bhi[s, 0])
-                        g1 = max(blo[s, 1] - p1, 0.0, p1 - bhi[s, 1])
-                        g2 = max(blo[s, 2] - p2, 0.0, p2 - bhi[s, 2])
-                        d = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
-                        if d < best:
-                            best = d
-                    g = best if inside[r, i, j, k] else -best
-                    out[r, i, j, k] = np.float32(r0_and(np.float64(values[b, i, j, k]), g))
-                    act[r, i, j, k] = True
+    nch = min(n, 64 * numba.get_num_threads())
+    for ch in numba.prange(nch):  # scratch per chunk of blocks: no allocation per block
+        glo, ghi, c = np.empty(3), np.empty(3), np.empty(3)
+        cand, cd = np.empty(256, np.int64), np.empty(256)
+        clo, chi, cb = np.empty((256, 3)), np.empty((256, 3)), np.empty(256)
+        nb = np.empty(BUCKETS + 1, np.int64)
+        for r in range(ch * n // nch, (ch + 1) * n // nch):
+            b = rows[r]
+            r2 = 0.0
+            for a in range(3):
+                glo[a] = origins[b, a] * h
+                ghi[a] = (origins[b, a] + 7) * h
+                c[a] = 0.5 * (glo[a] + ghi[a])
+                r2 += (0.5 * (ghi[a] - glo[a])) ** 2
+            rg = np.sqrt(r2) * (1.0 + 1e-9)  # >= |p - c| for every voxel centre p of the block
+            m_n = 0
+            for cl in range(cstart.shape[0] - 1):
+                cand, cd, m_n = _gather(glo, ghi, c, rg, blo, bhi, bkeys, cstart[cl], cstart[cl + 1], _BIN_OFFSET,
+                                        binsize[cl], reach[cl], clamp, cand, cd, m_n)
+            if m_n > clo.shape[0]:
+                clo, chi, cb = np.empty((cand.shape[0], 3)), np.empty((cand.shape[0], 3)), np.empty(cand.shape[0])
+            _bucket_order(cand, cd, m_n, clamp + rg, blo, bhi, nb, clo, chi, cb)
+            _piece_voxels(b, r, origins, active, labels, piece, values, inside, h, c, clo, chi, cb[:m_n], clamp, bg,
+                          out, act)
     return out, act
+
+
+BUCKETS = 64  # distance classes of a block's candidate faces (_bucket_order)
+
+
+@njit(cache=True)
+def _bucket_order(cand, cd, n, reach, blo, bhi, nb, clo, chi, cb):
+    """The candidates' boxes (rows cand[:n] of blo/bhi, at distances cd from the block's centre,
+    all below ``reach``) into clo/chi ordered by distance class (a counting sort into BUCKETS
+    classes of width reach / BUCKETS: cheaper than a sort of every block's list), with cb the
+    lower edge of each one's class: a lower bound of its distance, non-decreasing in that order."""
+    w = reach / BUCKETS
+    nb[:] = 0
+    for m in range(n):
+        nb[min(int(cd[m] / w), BUCKETS - 1) + 1] += 1
+    for q in range(BUCKETS):
+        nb[q + 1] += nb[q]
+    for m in range(n):
+        q = min(int(cd[m] / w), BUCKETS - 1)
+        t = nb[q]
+        nb[q] += 1
+        s = cand[m]
+        for a in range(3):
+            clo[t, a] = blo[s, a]
+            chi[t, a] = bhi[s, a]
+        cb[t] = q * w
+
+
+@njit(cache=True, inline="always")
+def _piece_voxels(b, r, origins, active, labels, piece, values, inside, h, c, clo, chi, cdist, clamp, bg, out, act):
+    """Block b's voxels of :func:`_separated_piece` into row r: the nearest candidate face per
+    voxel, visited in the order of their lower bounds ``cb`` of d(c, box) (c the block's
+    centre) until cb - |p - c| reaches the best distance (the same minimum as visiting them all)."""
+    for i in range(8):
+        for j in range(8):
+            for k in range(8):
+                if not active[b, i, j, k] or labels[b, i, j, k] != piece:
+                    out[r, i, j, k] = bg
+                    continue
+                p0, p1, p2 = (origins[b, 0] + i) * h, (origins[b, 1] + j) * h, (origins[b, 2] + k) * h
+                dp = np.sqrt((p0 - c[0]) ** 2 + (p1 - c[1]) ** 2 + (p2 - c[2]) ** 2)
+                best = clamp
+                for m in range(cdist.shape[0]):
+                    if cdist[m] - dp >= best:
+                        break
+                    g0 = max(clo[m, 0] - p0, 0.0, p0 - chi[m, 0])
+                    g1 = max(clo[m, 1] - p1, 0.0, p1 - chi[m, 1])
+                    g2 = max(clo[m, 2] - p2, 0.0, p2 - chi[m, 2])
+                    d = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+                    if d < best:
+                        best = d
+                g = best if inside[r, i, j, k] else -best
+                out[r, i, j, k] = np.float32(r0_and(np.float64(values[b, i, j, k]), g))
+                act[r, i, j, k] = True
 
 
 @njit(cache=True, parallel=True)

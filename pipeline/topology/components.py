@@ -1406,7 +1406,7 @@ def _separated_piece(rows, origins, active, labels, piece, values, inside, h, bl
     out = np.empty((n, 8, 8, 8), np.float32)
     act = np.zeros((n, 8, 8, 8), np.bool_)
     bg = np.float32(background)
-    nch = min(n, 64 * numba.get_num_threads())
+    nch = min(n, 256)
     for ch in numba.prange(nch):  # scratch per chunk of blocks: no allocation per block
         glo, ghi, c = np.empty(3), np.empty(3), np.empty(3)
         cand, cd = np.empty(256, np.int64), np.empty(256)

@@ -751,3 +751,29 @@ def test_order_keeping_passes_give_the_one_range_result() -> None:
     for chunks in (2, 7, 64):
         got = cc._truncated(level, cells, kind, frac, 4, anc, inv, chunks)
         assert all(np.array_equal(a, b) for a, b in zip(one, got, strict=True))
+
+
+@FAST
+@given(seed=st.integers(0, 2**31), n=st.integers(1, 3000), span=st.sampled_from([4, 16, 128]),
+       chunk=st.sampled_from([7, 1 << 16]))
+def test_shared_lattice_points_evaluated_once_give_the_same_child_signs(seed, n, span, chunk) -> None:
+    """Algorithm 1's child corner signs with each shared lattice point evaluated once (by its
+    first parent in key order) equal those with every parent evaluating its 19 points: parents
+    on the domain's low faces (coordinate 0), dense and scattered sets, several chunks; and the
+    model is evaluated exactly once per distinct new lattice point."""
+    rng = np.random.default_rng(seed)
+    c = rng.integers(0, span, (n, 3))
+    keys = np.unique(cc.key_of(c[:, 0], c[:, 1], c[:, 2]))
+    parents = cc.unpack(keys)
+    psigns = rng.integers(0, 256, len(parents)).astype(np.uint8)
+    cache = cc._CornerCache(node({"sphere": {"center": [0.3, 0.2, 0.25], "radius": 0.3}}), np.zeros(3),
+                            0.6 / (4 * span), 0.0)  # the sphere fills the lattice: both signs
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cc, "CHILD_CHUNK", chunk)
+        once = cc._child_corner_signs(cache, parents, psigns, 2)
+        evaluated = cache.evaluations
+        assert np.array_equal(once, cc._child_corner_signs_each(cache, parents, psigns, 2))
+    new = (2 * parents[:, None, :] + cc._NEW19[None]).reshape(-1, 3)
+    assert evaluated == len(np.unique(cc.key_of(new[:, 0], new[:, 1], new[:, 2])))
+    inside = cc._child_corner_signs(cache, parents[::-1].copy(), psigns[::-1].copy(), 2)  # not in key order
+    assert np.array_equal(inside.reshape(-1, 8)[::-1].reshape(-1), once)

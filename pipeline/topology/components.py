@@ -462,6 +462,36 @@ _LAT27 = np.array([[i, j, k] for i in range(3) for j in range(3) for k in range(
 _EVEN27 = np.all(_LAT27 % 2 == 0, axis=1)
 _FROM_PARENT = np.array([int(np.dot(o // 2, (4, 2, 1))) for o in _LAT27[_EVEN27]])
 _CHILD_IDX = np.array([[int(np.dot(o + c, (9, 3, 1))) for c in _CORNERS] for o in _CORNERS])  # (child, corner)
+_NEW19 = _LAT27[~_EVEN27]  # the lattice points of the children that are not parent corners
+
+
+def _earlier_sharers() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which earlier parents share each new lattice point. A point 2p + o of parent p lies on the
+    parent's face or edge along every axis where o is even (0 or 2), so the parents p + d with
+    d_a in {0, o_a - 1} there (d_a = 0 on odd axes) hold it too, as their point o - 2d. Returned:
+    the face/edge offsets d that come before p in key order (first non-zero component -1),
+    (9, 3); per new point, the indices of its sharers among them in key order, -1 padded,
+    (19, 3); and the sharer's index of the point among its own 19, (19, 3)."""
+    deltas = [d for d in _LAT27 - 1 if 0 < np.count_nonzero(d) <= 2 and d[np.flatnonzero(d)[0]] < 0]
+    index19 = {tuple(o): j for j, o in enumerate(_NEW19)}
+    who, where = np.full((19, 3), -1, np.int64), np.full((19, 3), -1, np.int64)
+    for j, o in enumerate(_NEW19):
+        even = [a for a in range(3) if o[a] % 2 == 0]
+        cands = []
+        for bits in range(1, 1 << len(even)):
+            d = np.zeros(3, np.int64)
+            for i, a in enumerate(even):
+                if bits >> i & 1:
+                    d[a] = o[a] - 1
+            if d[np.flatnonzero(d)[0]] < 0:
+                cands.append(tuple(d))
+        for k, d in enumerate(sorted(cands)):  # key order of the sharers: x, then y, then z
+            who[j, k] = next(i for i, e in enumerate(deltas) if tuple(e) == d)
+            where[j, k] = index19[tuple(np.asarray(o) - 2 * np.asarray(d))]
+    return np.array(deltas, np.int64), who, where
+
+
+_SHARER_D, _SHARER_OF, _SHARER_IDX = _earlier_sharers()
 
 
 CHILD_CHUNK = 1 << 16  # parents per evaluation of their new lattice points (19 points each)
@@ -469,30 +499,109 @@ CHILD_CHUNK = 1 << 16  # parents per evaluation of their new lattice points (19 
 
 def _child_corner_signs(cache: _CornerCache, parents: np.ndarray, psigns: np.ndarray, scale: int) -> np.ndarray:
     """Corner signs of the 8 children of every parent, (P*8,) bytes in child order: the
-    parent's corners are reused and only the 19 new lattice points per parent are evaluated,
-    a chunk of parents at a time (the points of every parent at once would be ~0.5 KB each)."""
+    parent's corners are reused and the 19 new lattice points per parent are evaluated once
+    each. A point shared by neighbouring parents (on a common face or edge: half of them at
+    1024^3) belongs to the first of them in key order, which evaluates it; the others copy its
+    sign. The parents come in key order (every level of the descent does); otherwise each
+    parent evaluates all its 19 points."""
+    parents = np.ascontiguousarray(parents, dtype=np.int64)
+    keys = key_of(parents[:, 0], parents[:, 1], parents[:, 2])
+    if len(keys) > 1 and not np.all(keys[1:] > keys[:-1]):
+        return _child_corner_signs_each(cache, parents, psigns, scale)
+    sharers = _sharer_rows(parents, keys, _SHARER_D)
+    owned = _owned_points(sharers, _SHARER_OF)
+    origin, step = np.asarray(cache.origin, np.float64), float(cache.step)
+    pos = np.zeros((len(parents), 19), np.bool_)
+    for s in range(0, len(parents), CHILD_CHUNK):
+        e = min(s + CHILD_CHUNK, len(parents))
+        rows, cols = np.nonzero(owned[s:e])
+        pts = _lattice_points_at(parents, rows + s, cols, _NEW19, int(scale), origin, step)
+        pos[rows + s, cols] = cache.evaluate(pts) > 0
+    _copy_shared(pos, sharers, _SHARER_OF, _SHARER_IDX)
+    return _assemble_children(psigns, pos, _FROM_PARENT, np.flatnonzero(_EVEN27), np.flatnonzero(~_EVEN27),
+                              _CHILD_IDX)
+
+
+def _child_corner_signs_each(cache: _CornerCache, parents: np.ndarray, psigns: np.ndarray,
+                             scale: int) -> np.ndarray:
+    """:func:`_child_corner_signs` with every parent evaluating its 19 points (any order)."""
     out = np.empty(len(parents) * 8, np.uint8)
     parents = np.ascontiguousarray(parents, dtype=np.int64)
     origin, step = np.asarray(cache.origin, np.float64), float(cache.step)
-    # points shared by neighbouring parents are evaluated once per parent: with the compiled
-    # model that is cheaper than finding the duplicates (a sort of every key)
     for s in range(0, len(parents), CHILD_CHUNK):
         e = min(s + CHILD_CHUNK, len(parents))
-        pts = _new_lattice_points(parents[s:e], _LAT27[~_EVEN27], int(scale), origin, step)
-        pos = (cache.evaluate(pts) > 0).reshape(e - s, -1)
+        rows, cols = np.divmod(np.arange(19 * (e - s), dtype=np.int64), 19)
+        pts = _lattice_points_at(parents, rows + s, cols, _NEW19, int(scale), origin, step)
+        pos = (cache.evaluate(pts) > 0).reshape(e - s, 19)
         out[8 * s:8 * e] = _assemble_children(psigns[s:e], pos, _FROM_PARENT, np.flatnonzero(_EVEN27),
                                               np.flatnonzero(~_EVEN27), _CHILD_IDX)
     return out
 
 
-@njit(cache=True)
-def _new_lattice_points(parents, offsets, scale, origin, step):
-    """World points of the 19 lattice points per parent that are not parent corners."""
-    out = np.empty((parents.shape[0] * offsets.shape[0], 3))
-    for p in range(parents.shape[0]):
-        for o in range(offsets.shape[0]):
-            for a in range(3):
-                out[p * offsets.shape[0] + o, a] = origin[a] + ((2 * parents[p, a] + offsets[o, a]) * scale) * step
+@njit(cache=True, parallel=True)
+def _sharer_rows(parents, keys, deltas):
+    """Row of the parent p + d for each offset d (-1: none), (P, D); parents in key order. The
+    targets keys + key(d) increase with the row, so each range of rows walks them forward."""
+    n, nd = parents.shape[0], deltas.shape[0]
+    out = np.full((n, nd), -1, np.int64)
+    parts = 64
+    for part in numba.prange(parts):
+        a, b = n * part // parts, n * (part + 1) // parts
+        for t in range(nd):
+            dk = (deltas[t, 0] << (2 * _BITS)) + (deltas[t, 1] << _BITS) + deltas[t, 2]
+            j = -1
+            for i in range(a, b):
+                if (parents[i, 0] + deltas[t, 0] < 0 or parents[i, 1] + deltas[t, 1] < 0
+                        or parents[i, 2] + deltas[t, 2] < 0):
+                    continue
+                q = keys[i] + dk
+                if j < 0:
+                    j = _lower_bound(keys, 0, n, q)
+                while j < n and keys[j] < q:
+                    j += 1
+                if j < n and keys[j] == q:
+                    out[i, t] = j
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _owned_points(sharers, sharer_of):
+    """(P, 19) mask of the new points a parent evaluates: those no earlier parent holds."""
+    n = sharers.shape[0]
+    out = np.empty((n, 19), np.bool_)
+    for i in numba.prange(n):
+        for j in range(19):
+            mine = True
+            for k in range(3):
+                t = sharer_of[j, k]
+                if t >= 0 and sharers[i, t] >= 0:
+                    mine = False
+            out[i, j] = mine
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _copy_shared(pos, sharers, sharer_of, sharer_idx):
+    """Signs of the points a parent does not own, from their owner: the first present earlier
+    sharer in key order, which owns them (no parent holding the point comes before it)."""
+    for i in numba.prange(pos.shape[0]):
+        for j in range(19):
+            for k in range(3):
+                t = sharer_of[j, k]
+                if t >= 0 and sharers[i, t] >= 0:
+                    pos[i, j] = pos[sharers[i, t], sharer_idx[j, k]]
+                    break
+
+
+@njit(cache=True, parallel=True)
+def _lattice_points_at(parents, rows, cols, offsets, scale, origin, step):
+    """World points of new lattice points (rows[i], cols[i]): parent row, point index. The
+    integer lattice coordinate is formed first, so a point shared by parents gets the same
+    float from each."""
+    out = np.empty((rows.shape[0], 3))
+    for i in numba.prange(rows.shape[0]):
+        for a in range(3):
+            out[i, a] = origin[a] + ((2 * parents[rows[i], a] + offsets[cols[i], a]) * scale) * step
     return out
 
 

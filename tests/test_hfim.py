@@ -265,3 +265,51 @@ def test_fill_tiles_equals_one_fill_per_tile(seed, size, extent, merge) -> None:
     got.copyToArray(b, ijk=(-48, -48, -48))
     assert np.array_equal(a, b)
     assert got.activeVoxelCount() == ref.activeVoxelCount() == 512 * len(lat)
+
+
+def _sphere_lattice(shape=(40, 37, 29)):
+    """A lattice of nodes 8 voxels apart inside a sphere: free nodes (r < 14 nodes), a frozen
+    shell holding the exact distance (voxel units), the rest excluded."""
+    from pipeline.distance.fim import EXCLUDED, FREE, FROZEN
+
+    g = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1)
+    r = np.linalg.norm(g - np.array(shape) / 2, axis=-1)
+    state = np.full(shape, EXCLUDED, np.int8)
+    state[r < 14] = FREE
+    state[(r >= 14) & (r < 15.5)] = FROZEN
+    exact = (16.0 - r) * 8.0
+    return np.where(state == FROZEN, exact, np.inf), state, np.ones(shape, bool), exact
+
+
+def test_interior_solve_second_order_straight_from_the_frozen_nodes() -> None:
+    """The coarse interior's node FIM runs the second-order scheme straight from the frozen
+    nodes (hfim._interior_solve), as the fine solve does: the same nodes solved as first order
+    then second order, within 2e-3 voxels of it, with fewer updates, frozen nodes untouched.
+    When the second-order pass stops at its visit bound, the free nodes are reset and the
+    robust path runs: exactly what first order, then second order give from the start."""
+    from pipeline.distance import hfim
+    from pipeline.distance.fim import FREE
+
+    d, state, inside, exact = _sphere_lattice()
+    ref = d.copy()
+    up_ref = hfim.lattice_fim(ref, state, inside, 8.0, 8e-6, False, 1 << 40)[0]
+    up_ref += hfim.lattice_fim(ref, state, inside, 8.0, 8e-6, True, hfim.SECOND_ORDER_VISITS)[0]
+    got = d.copy()
+    up = hfim._interior_solve(got, state, inside, 8.0, 8e-6, 2)
+    free = state == FREE
+    assert np.array_equal(np.isfinite(got), np.isfinite(ref)) and np.isfinite(got[free]).all()
+    assert np.abs(got[free] - ref[free]).max() < 2e-3 and up < up_ref
+    assert np.array_equal(got[~free], d[~free])
+
+    bound = 1  # one visit per block: the straight pass cannot converge
+    saved = hfim.SECOND_ORDER_VISITS
+    hfim.SECOND_ORDER_VISITS = bound
+    try:
+        fallback = d.copy()
+        hfim._interior_solve(fallback, state, inside, 8.0, 8e-6, 2)
+    finally:
+        hfim.SECOND_ORDER_VISITS = saved
+    robust = d.copy()
+    hfim.lattice_fim(robust, state, inside, 8.0, 8e-6, False, 1 << 40)
+    assert not hfim.lattice_fim(robust, state, inside, 8.0, 8e-6, True, bound)[2]
+    assert np.array_equal(fallback, robust)

@@ -37,8 +37,18 @@ key3 = njit(cache=True, inline="always")(key_of)  # key_of inside Numba kernels
 
 def pack_keys(ijk: np.ndarray) -> np.ndarray:
     """Sortable int64 keys of (N,3) integer index coordinates in [-2^20, 2^20)."""
-    a = np.asarray(ijk, dtype=np.int64) + KEY_OFFSET
-    return key_of(a[:, 0], a[:, 1], a[:, 2])
+    a = np.ascontiguousarray(np.asarray(ijk).reshape(-1, 3), dtype=np.int64)
+    out = np.empty(len(a), np.int64)
+    _pack_keys(a, out)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _pack_keys(a, out):
+    """out[t] = key3 of row t + KEY_OFFSET, one pass on every core (NumPy's column operations
+    made five temporaries: 1.2 s for 16 calls in the hfrep stage at 2048^3)."""
+    for t in prange(a.shape[0]):
+        out[t] = key3(a[t, 0] + KEY_OFFSET, a[t, 1] + KEY_OFFSET, a[t, 2] + KEY_OFFSET)
 
 
 def merge_sorted(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -313,3 +313,42 @@ def test_interior_solve_second_order_straight_from_the_frozen_nodes() -> None:
     hfim.lattice_fim(robust, state, inside, 8.0, 8e-6, False, 1 << 40)
     assert not hfim.lattice_fim(robust, state, inside, 8.0, 8e-6, True, bound)[2]
     assert np.array_equal(fallback, robust)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**31), st.booleans())
+def test_leaf_nodes_are_numpys_mean_of_the_centre_voxels(seed: int, centre: bool) -> None:
+    """hfim._fine_nodes (one compiled pass) against its NumPy formulation, bit for bit: node =
+    float32 mean of a leaf's 8 centre voxels / h, frozen where the leaf (``centre``: its 8
+    centre voxels) is solved, inside where more than half of those 8 are; leaves off the
+    lattice are skipped."""
+    from types import SimpleNamespace
+
+    from pipeline.distance.hfim import _fine_nodes
+    from pipeline.sparse.grid import BlockGrid, pack_keys
+
+    rng = np.random.default_rng(seed)
+    shape = (5, 4, 6)
+    lat_lo = np.array([-2, 1, -3])
+    cells = rng.permutation(np.argwhere(np.ones((7, 6, 8), bool)))[:60] + lat_lo - 1  # some off the lattice
+    origins = cells[np.argsort(pack_keys(cells))] * LEAF  # in BlockGrid's order: inside is aligned with it
+    values = (rng.random((60, LEAF, LEAF, LEAF)) * 40).astype(np.float32)
+    active = rng.random(values.shape) < 0.995
+    active[rng.random(60) < 0.5] = True
+    inside = rng.random(values.shape) < 0.5
+    h = 0.0123
+    fine = SimpleNamespace(distance=BlockGrid(h, 1.0, origins, values, active), inside=inside)
+    assert np.array_equal(fine.distance.origins, origins)
+    vals, frozen, ins = _fine_nodes(fine, lat_lo, shape, centre)
+
+    want_v, want_f, want_i = np.full(shape, np.inf), np.zeros(shape, bool), np.zeros(shape, bool)
+    p = (origins >> 3) - lat_lo
+    ok = np.all((p >= 0) & (p < np.array(shape)), axis=1)
+    solved = active[:, 3:5, 3:5, 3:5] if centre else active
+    full = solved.reshape(60, -1).all(axis=1) & ok
+    mean = values[:, 3:5, 3:5, 3:5].reshape(60, -1).mean(axis=1) / h
+    want_v[tuple(p[full].T)] = mean[full]
+    want_f[tuple(p[full].T)] = True
+    want_i[tuple(p[ok].T)] = inside[:, 3:5, 3:5, 3:5][ok].reshape(int(ok.sum()), -1).mean(axis=1) > 0.5
+    assert full.any() and (~ok).any()
+    assert np.array_equal(vals, want_v) and np.array_equal(frozen, want_f) and np.array_equal(ins, want_i)

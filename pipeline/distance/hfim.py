@@ -292,23 +292,47 @@ def _parents(lat_lo: np.ndarray, shape, cell: int, coarser: int) -> np.ndarray:
 def _fine_nodes(fine: EikonalResult, lat_lo: np.ndarray, shape, centre: bool = False):
     """Level-1 (leaf) node values from the fine solve: mean of the 8 voxels around each leaf
     centre (the trilinear value there); frozen where the whole leaf is solved (``centre``:
-    where those 8 voxels are solved)."""
+    where those 8 voxels are solved); inside where most of those 8 voxels are."""
     dist = fine.distance
-    h = float(dist.voxel_size)
     vals = np.full(shape, np.inf)
     frozen = np.zeros(shape, bool)
-    p = (dist.origins >> 3) - lat_lo
-    ok = np.all((p >= 0) & (p < np.array(shape)), axis=1)
-    solved = dist.active[:, 3:5, 3:5, 3:5] if centre else dist.active
-    full = solved.reshape(len(solved), -1).all(axis=1) & ok
-    centre = dist.values[:, 3:5, 3:5, 3:5].reshape(len(dist.values), -1).mean(axis=1) / h
-    idx = tuple(p[full].T)
-    vals[idx] = centre[full]
-    frozen[idx] = True
     inside = np.zeros(shape, bool)
-    # the centre voxels first, then the rows: no copy of the whole inside mask (560 MB at 2048^3)
-    inside[tuple(p[ok].T)] = fine.inside[:, 3:5, 3:5, 3:5][ok].reshape(int(ok.sum()), -1).mean(axis=1) > 0.5
+    _leaf_nodes(dist.values, dist.active, fine.inside, dist.origins, np.asarray(lat_lo, np.int64),
+                np.float32(dist.voxel_size), centre, vals, frozen, inside)
     return vals, frozen, inside
+
+
+@njit(cache=True, parallel=True)
+def _leaf_nodes(values, active, inside_v, origins, lat_lo, h32, centre, vals, frozen, inside):
+    """:func:`_fine_nodes` in one parallel pass over the blocks (each writes its own node).
+    The mean is NumPy's float32 ``mean`` of the 8 centre voxels (its pairwise sum), divided by
+    ``h32`` in float32, as the NumPy code it replaces computed it (bit for bit, checked on the
+    demo at 512^3); inside: more than 4 of the 8."""
+    na, nb, nc = vals.shape
+    for t in prange(origins.shape[0]):
+        a = (origins[t, 0] >> 3) - lat_lo[0]
+        b = (origins[t, 1] >> 3) - lat_lo[1]
+        c = (origins[t, 2] >> 3) - lat_lo[2]
+        if not (0 <= a < na and 0 <= b < nb and 0 <= c < nc):
+            continue
+        n_in = 0
+        full = True
+        for q in range(8):
+            i, j, k = 3 + (q >> 2), 3 + ((q >> 1) & 1), 3 + (q & 1)
+            n_in += inside_v[t, i, j, k]
+            full = full and active[t, i, j, k]
+        inside[a, b, c] = n_in > 4
+        if not centre and full:
+            for i in range(8):
+                for j in range(8):
+                    for k in range(8):
+                        full = full and active[t, i, j, k]
+        if full:
+            v = values[t, 3:5, 3:5, 3:5]
+            lo = (v[0, 0, 0] + v[0, 0, 1]) + (v[0, 1, 0] + v[0, 1, 1])
+            hi = (v[1, 0, 0] + v[1, 0, 1]) + (v[1, 1, 0] + v[1, 1, 1])
+            vals[a, b, c] = ((lo + hi) / np.float32(8.0)) / h32
+            frozen[a, b, c] = True
 
 
 def _coarser_nodes(level: CoarseLevel, cell: int, lat_lo: np.ndarray, shape):

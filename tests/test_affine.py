@@ -122,3 +122,16 @@ def test_many_boxes_in_one_call():
     pts = lo + rng.random((5000, 3)) * (hi - lo)
     v = sphere.evaluate(pts)
     assert np.all(v >= flo - 1e-12) and np.all(v <= fhi + 1e-12)
+
+
+def test_from_range_with_infinite_ends_is_unbounded_not_nan() -> None:
+    """affine.from_range of [-inf, inf], [-inf, 1] and [2, inf] (1/x or log across 0): the
+    unbounded form (interval [-inf, inf], never NaN, which a test like ``lo > 0`` would read as
+    'not proven' but arithmetic would spread); finite ranges keep their exact interval."""
+    x = AffineForm.coordinates(np.full((4, 3), -1.0), np.full((4, 3), 1.0))[0]
+    rlo = np.array([-np.inf, -np.inf, 2.0, -3.0])
+    rhi = np.array([np.inf, 1.0, np.inf, 5.0])
+    lo, hi = aa.from_range(x, rlo, rhi).interval()
+    assert not np.isnan(lo).any() and not np.isnan(hi).any()
+    assert (lo[:3] == -np.inf).all() and (hi[:3] == np.inf).all()
+    assert lo[3] <= -3.0 and hi[3] >= 5.0 and hi[3] - lo[3] < 8.0 + 1e-9

@@ -198,9 +198,12 @@ def chebyshev(
 
 
 def from_range(a: AffineForm, rlo: np.ndarray, rhi: np.ndarray) -> AffineForm:
-    """Interval fallback: the exact range [rlo, rhi] of f over the form's interval, no correlation."""
+    """Interval fallback: the exact range [rlo, rhi] of f over the form's interval, no correlation.
+    An infinite end gives the unbounded form (``_linear``: centre 0, error inf); the centre of
+    [-inf, inf] is NaN on the way there, which is not an error."""
     zero = np.zeros_like(a.c)
-    return _linear(a, zero, 0.5 * (rlo + rhi), 0.5 * (rhi - rlo))
+    with np.errstate(invalid="ignore"):
+        return _linear(a, zero, 0.5 * (rlo + rhi), 0.5 * (rhi - rlo))
 
 
 def sqrt(a: AffineForm) -> AffineForm:

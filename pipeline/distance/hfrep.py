@@ -89,21 +89,22 @@ def hfrep_blocks(
     # float32 throughout (this grid covers the whole interior), on mappings the writer can
     # release as it writes (LeafSource.of(..., consume=True))
     values = mapped_empty(dist.values.shape, np.float32)
+    active = mapped_empty(dist.active.shape, bool)  # a copy: fill_deep adds the deep voxels to it
     _hfrep_values(dist.values, dist.active, result.inside, rows, frep.values, frep.active, table,
-                  STEPS.index(step), float(slope), np.float32(-dist.background), values)
-    active = mapped_empty(dist.active.shape, bool)
-    np.copyto(active, dist.active)
+                  STEPS.index(step), float(slope), np.float32(-dist.background), values, active)
     return BlockGrid(dist.voxel_size, -float(dist.background), dist.origins, values, active)
 
 
 @njit(cache=True, parallel=True)
-def _hfrep_values(dist, active, inside, rows, f, fact, table, mode, slope, outside, out):
+def _hfrep_values(dist, active, inside, rows, f, fact, table, mode, slope, outside, out, out_active):
     """One pass of :func:`hfrep_blocks`: float32(step) * distance at solved voxels, ``outside``
     elsewhere; the step is +-1 from the solved side where frep has no value. ``mode``: the
     index in STEPS; sigmoid and rational computed here with step_function's operations (the same
-    float64 values, rounded to float32 as its result was), tanh read from ``table``."""
+    float64 values, rounded to float32 as its result was), tanh read from ``table``.
+    ``out_active``: a copy of ``active``, made here on both cores (np.copyto took one)."""
     for b in prange(dist.shape[0]):
         r = rows[b]
+        out_active[b] = active[b]
         for i in range(8):
             for j in range(8):
                 for k in range(8):

@@ -407,7 +407,7 @@ def solve_distance(
     if unsigned:  # band voxels the flood could not reach inside the band blocks: on through the rest
         _flood_sign(sign, block_neighbours(grid))
     inside = mapped_empty(sign.shape, bool)  # compacted in place to the kept blocks after the solve
-    np.greater(sign, 0, out=inside)
+    _positive(sign, inside)
     del sign
     state = _excluded_state(grid.origins, lo, hi)
     # float32 as the output (the FIM rounds to it as it computes): half the memory to touch
@@ -547,6 +547,16 @@ def _left(inside, solved, state, srows, rows, out):
             for j in range(8):
                 for k in range(8):
                     out[t, i, j, k] = inside[b, i, j, k] and not solved[b, i, j, k] and state[s, i, j, k] != EXCLUDED
+
+
+@njit(cache=True, parallel=True)
+def _positive(sign, out):
+    """out = sign > 0, block by block on every core (np.greater: 0.39 s on one at 1024^3)."""
+    for b in prange(sign.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    out[b, i, j, k] = sign[b, i, j, k] > 0
 
 
 @njit(cache=True)

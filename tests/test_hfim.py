@@ -215,12 +215,8 @@ def test_lattice_fim_solves_what_node_fim_solves(seed: int, holes: bool) -> None
     from pipeline.distance.hfim import lattice_fim, node_fim
 
     rng = np.random.default_rng(seed)
-    shape = (40, 37, 29)
-    g = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1)
-    r = np.linalg.norm(g - np.array(shape) / 2, axis=-1)
-    state = np.full(shape, EXCLUDED, np.int8)
-    state[r < 14] = FREE
-    state[(r >= 14) & (r < 15.5)] = FROZEN
+    state, r = _sphere_lattice()
+    shape = state.shape
     if holes:
         state[rng.random(shape) < 0.03] = EXCLUDED
     exact = (16.0 + rng.random() - r) * 8.0  # voxel units: the distance inside a sphere, nodes 8 apart
@@ -268,8 +264,8 @@ def test_fill_tiles_equals_one_fill_per_tile(seed, size, extent, merge) -> None:
 
 
 def _sphere_lattice(shape=(40, 37, 29)):
-    """A lattice of nodes 8 voxels apart inside a sphere: free nodes (r < 14 nodes), a frozen
-    shell holding the exact distance (voxel units), the rest excluded."""
+    """(state, r) of a lattice of nodes inside a sphere: free nodes (r < 14 nodes from the
+    centre), a frozen shell (14 <= r < 15.5), the rest excluded."""
     from pipeline.distance.fim import EXCLUDED, FREE, FROZEN
 
     g = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1)
@@ -277,8 +273,7 @@ def _sphere_lattice(shape=(40, 37, 29)):
     state = np.full(shape, EXCLUDED, np.int8)
     state[r < 14] = FREE
     state[(r >= 14) & (r < 15.5)] = FROZEN
-    exact = (16.0 - r) * 8.0
-    return np.where(state == FROZEN, exact, np.inf), state, np.ones(shape, bool), exact
+    return state, r
 
 
 def test_interior_solve_second_order_straight_from_the_frozen_nodes() -> None:
@@ -287,13 +282,15 @@ def test_interior_solve_second_order_straight_from_the_frozen_nodes() -> None:
     then second order, within 2e-3 voxels of it, with fewer updates, frozen nodes untouched.
     When the second-order pass stops at its visit bound, the free nodes are reset and the
     robust path runs: exactly what first order, then second order give from the start."""
-    from pipeline.distance import hfim
-    from pipeline.distance.fim import FREE
+    from pipeline.distance import eikonal, hfim
+    from pipeline.distance.fim import FREE, FROZEN
 
-    d, state, inside, exact = _sphere_lattice()
+    state, r = _sphere_lattice()
+    d = np.where(state == FROZEN, (16.0 - r) * 8.0, np.inf)  # the exact distance, voxel units
+    inside = np.ones(state.shape, bool)
     ref = d.copy()
     up_ref = hfim.lattice_fim(ref, state, inside, 8.0, 8e-6, False, 1 << 40)[0]
-    up_ref += hfim.lattice_fim(ref, state, inside, 8.0, 8e-6, True, hfim.SECOND_ORDER_VISITS)[0]
+    up_ref += hfim.lattice_fim(ref, state, inside, 8.0, 8e-6, True, eikonal.SECOND_ORDER_VISITS)[0]
     got = d.copy()
     up = hfim._interior_solve(got, state, inside, 8.0, 8e-6, 2)
     free = state == FREE
@@ -302,13 +299,13 @@ def test_interior_solve_second_order_straight_from_the_frozen_nodes() -> None:
     assert np.array_equal(got[~free], d[~free])
 
     bound = 1  # one visit per block: the straight pass cannot converge
-    saved = hfim.SECOND_ORDER_VISITS
-    hfim.SECOND_ORDER_VISITS = bound
+    saved = eikonal.SECOND_ORDER_VISITS  # the bound of eikonal.run_passes, which chooses the passes
+    eikonal.SECOND_ORDER_VISITS = bound
     try:
         fallback = d.copy()
         hfim._interior_solve(fallback, state, inside, 8.0, 8e-6, 2)
     finally:
-        hfim.SECOND_ORDER_VISITS = saved
+        eikonal.SECOND_ORDER_VISITS = saved
     robust = d.copy()
     hfim.lattice_fim(robust, state, inside, 8.0, 8e-6, False, 1 << 40)
     assert not hfim.lattice_fim(robust, state, inside, 8.0, 8e-6, True, bound)[2]

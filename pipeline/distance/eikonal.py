@@ -47,7 +47,7 @@ from pipeline.distance.eikonal_bricks import BrickedFIM
 from pipeline.distance.fim import EXCLUDED, FREE, FROZEN, block_colour, fim, init_interface
 from pipeline.sparse.access import FACE_DIRS, block_lattice, block_neighbours, block_neighbours27
 from pipeline.sparse.blockwrite import LeafSource, mapped_empty, release_rows
-from pipeline.sparse.grid import LEAF, BlockGrid, fill_rows, merge_sorted, pack_keys, put_rows
+from pipeline.sparse.grid import LEAF, BlockGrid, merge_sorted, pack_keys, put_rows
 from pipeline.util.jit import njit
 
 SECOND_ORDER_VISITS = 50  # block visits per block before a second-order pass is abandoned
@@ -425,9 +425,9 @@ def solve_distance(
     if brick:
         solver = BrickedFIM(d, state, inside, nbr27, brick, grid.origins, map_fn)
         passes = {"bricks": solver.n_bricks,
-                  **_solve(solver.pass_runner(limit, tol, max_sweeps, limit_in), d, state, seeds, order)}
+                  **run_passes(solver.pass_runner(limit, tol, max_sweeps, limit_in), d, state, seeds, order)}
     else:
-        passes = _solve(_flat_pass(d, state, inside, nbr27, block_colour(grid.origins), limit, tol, max_sweeps,
+        passes = run_passes(_flat_pass(d, state, inside, nbr27, block_colour(grid.origins), limit, tol, max_sweeps,
                                    limit_in), d, state, seeds, order)
     t2 = time.perf_counter()
 
@@ -618,10 +618,11 @@ def _blocks_holding(state, value):
     return out
 
 
-def _solve(run_pass, d, state, seeds, order: int) -> dict:
+def run_passes(run_pass, d, state, seeds, order: int) -> dict:
     """The FIM passes of ``order`` (see :mod:`pipeline.distance.fim`). Counters for the manifest.
 
-    ``run_pass(seeds, order2, visits_per_block)`` runs one FIM pass (flat or over bricks) and
+    ``run_pass(seeds, order2, visits_per_block)`` runs one FIM pass (flat, over bricks, or on
+    the coarse interior's node lattice: pipeline.distance.hfim.interior_tiles) and
     returns its counters with ``converged``. Order 2 runs the second-order FIM straight from
     the initial layer (measured: the same result as from the first-order solution, at a
     quarter of the work). It is not monotone, so its work is bounded; if it does not converge
@@ -706,7 +707,7 @@ def _assemble(band: BlockGrid, band_sign: np.ndarray, block_sign: np.ndarray, ke
     nb = len(band.origins)
     sign = np.empty((len(origins), LEAF, LEAF, LEAF), dtype=np.int8)
     put_rows(sign, pos[:nb], band_sign)  # in parallel: 2.4 s of NumPy fancy assignment at 2048^3
-    fill_rows(sign, pos[nb:], block_sign[tuple(extra.T)])
+    put_rows(sign, pos[nb:], block_sign[tuple(extra.T)])
     brow = np.full(len(origins), -1, np.int64)
     brow[pos[:nb]] = np.arange(nb)
     empty = np.zeros((0, LEAF, LEAF, LEAF), np.float32)  # block_index / neighbour tables need the origins only

@@ -94,7 +94,7 @@ class BrickedFIM:
         return totals
 
     def pass_runner(self, limit: float, tol: float, max_sweeps: int, limit_in: float = np.inf):
-        """``run_pass(seeds, order2, visits_per_block)`` for :func:`pipeline.distance.eikonal._solve`."""
+        """``run_pass(seeds, order2, visits_per_block)`` for :func:`pipeline.distance.eikonal.run_passes`."""
         def run(seeds, order2, visits_per_block):
             return self.solve(seeds, limit, tol, max_sweeps, order2, visits_per_block, limit_in)
         return run

@@ -164,18 +164,10 @@ def leaf_has_active(active: np.ndarray) -> np.ndarray:
     return out
 
 
-
-
 @njit(cache=True, parallel=True)
 def put_rows(dst: np.ndarray, rows: np.ndarray, src: np.ndarray) -> None:
-    """``dst[rows[t]] = src[t]`` for (L,8,8,8) blocks, ``rows`` distinct, in parallel (NumPy's
-    fancy assignment copies the 512 voxels of a row one element at a time, on one core)."""
+    """``dst[rows[t]] = src[t]`` for (L,8,8,8) blocks, ``src`` holding blocks or one value for
+    each whole block, ``rows`` distinct, in parallel (NumPy's fancy assignment copies the 512
+    voxels of a row one element at a time, on one core)."""
     for t in prange(rows.shape[0]):
         dst[rows[t]] = src[t]
-
-
-@njit(cache=True, parallel=True)
-def fill_rows(dst: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
-    """``dst[rows[t]] = values[t]`` (one value for each whole block), ``rows`` distinct, in parallel."""
-    for t in prange(rows.shape[0]):
-        dst[rows[t]] = values[t]

@@ -69,6 +69,7 @@ def check_tape(job, seed: int = 0) -> pt.Tape:
     np.testing.assert_array_equal(np.isfinite(got), ok)
     np.testing.assert_allclose(got[ok], ref[ok], rtol=1e-9, atol=1e-12)
     check_gradient(tp, p)
+    check_lattice(tp, rng)
     # boxes of several sizes: bounds contain the values; the specialised tape is exact there
     for size in (0.5, 0.12, 0.03):
         lo = rng.uniform(-1.2, 1.2 - size, (40, 3))
@@ -98,6 +99,32 @@ def check_gradient(tp: pt.Tape, p: np.ndarray) -> None:
     err = np.linalg.norm(g - fd, axis=1) / np.maximum(1.0, np.linalg.norm(fd, axis=1))
     assert np.mean(err[ok] < 1e-5) >= 0.99, np.sort(err[ok])[-20:]
     assert np.mean(np.all(np.isfinite(g), axis=1)[np.isfinite(v)]) >= 0.99  # defined almost everywhere
+
+
+def check_lattice(tp: pt.Tape, rng: np.random.Generator) -> None:
+    """Blocks of voxel centres (eval_blocks: a clause of one or two coordinates runs once per
+    distinct value of them, pt.SEPARABLE) give the point evaluator's values to the bit, NaN and
+    inf included, at every block size the voxeliser offers."""
+    n = len(tp)
+    for block, h in ((2, 0.05), (4, 0.013), (8, 0.0071)):
+        blocks = rng.integers(int(-1.2 / h), int(1.2 / h) - block, (30, 3))
+        got = pt.eval_blocks(blocks, block, h, np.zeros(len(blocks), np.int64), np.zeros(1, np.int64), np.array([n]),
+                             np.array([tp.res]), tp.op, tp.a, tp.b, tp.c, *tp.oracle.arrays(), n)
+        idx = np.stack(np.meshgrid(*[np.arange(block)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        pts = ((blocks[:, None, :] + idx[None]) * h).reshape(-1, 3)
+        np.testing.assert_array_equal(got.reshape(-1), pt.evaluate_with(tp, pts))
+
+
+def test_lattice_clauses_of_one_coordinate_run_once_per_value(tmp_path) -> None:
+    """Costly clauses of one coordinate (|x|^e, sin z, sqrt(y + 2), 1 / (x - 0.31)) and of two
+    ((x y)^0.5, NaN where x y < 0; log(z + y + 2.5), -inf or NaN below) run once per distinct
+    value on a block lattice: the values are the point evaluator's to the bit (check_lattice)."""
+    from pipeline.job.config import _Ctx, build_node
+
+    raw = {"expr": "1 - abs(x)^6.67 - (x * y)^0.5 + sin(9 * z) * sqrt(y + 2) + 0.01 / (x - 0.31)"
+                   " - log(z + y + 2.5) / 7"}  # not finite everywhere: a job would refuse it
+    tp = pt.compile_model(build_node(raw, ("model",), _Ctx("lattice", raw, tmp_path)), 0.0)
+    check_lattice(tp, np.random.default_rng(3))
 
 
 def specialised(tp: pt.Tape, lo: np.ndarray, hi: np.ndarray) -> pt.Tape:

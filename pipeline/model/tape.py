@@ -510,17 +510,69 @@ def _specialise_batch(x, y, z, m, st, orc, sj, sv, cn, co, cp, cq, cm):
                           cn, co, cp, cq, cm)
 
 
+# costly clauses worth running once per distinct coordinate value (cheap ones cost less than the copy)
+SEPARABLE = (DIV, DIVC, RDIVC, SQRT, EXP, LOG, SIN, COS, POWC, R0AND, SARDFAND, COMPRESS)
+
+
+@njit(cache=True, inline="always")
+def _clause_dep(o, ia, ib, dep):
+    """Bits of the coordinates (x 1, y 2, z 4) a clause depends on; a mesh oracle on all."""
+    if o == X:
+        return 1
+    if o == Y:
+        return 2
+    if o == Z:
+        return 4
+    if o == CONST:
+        return 0
+    if o in (BSP, BSPXY):
+        return 7
+    return dep[ia] | (dep[ib] if ib >= 0 else 0)
+
+
+@njit(cache=True, inline="always")
+def _on_lattice(o, ia, ib, ck, reg, k, lat, dk):
+    """Clause k over a lat^3 lattice batch when it depends on the coordinates ``dk`` only: the
+    value at each point whose other coordinates are the first is computed, the others copy it
+    (their representative comes earlier in the batch's order)."""
+    v = 0
+    for i in range(lat):
+        ri = (i if dk & 1 else 0) * lat
+        for j in range(lat):
+            rj = (ri + (j if dk & 2 else 0)) * lat
+            for w in range(lat):
+                r = rj + (w if dk & 4 else 0)
+                if r == v:
+                    reg[k, v] = _apply(o, reg[ia, v], reg[ib, v] if ib >= 0 else 0.0, ck)
+                else:
+                    reg[k, v] = reg[k, r]
+                v += 1
+
+
 @njit(cache=True)
-def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m, orc, sj, sv, spec, cn, co, cp, cq, cm, treg, tfa):
+def _run_batch(op, a, b, c, s, n, res, px, py, pz, reg, m, orc, sj, sv, spec, cn, co, cp, cq, cm, treg, tfa, lat,
+               dep):
     """Clause-major: each clause runs over the m points of the batch (the dispatch on the
     opcode is paid once per clause, the inner loops are plain arithmetic). With ``spec`` (the
     points of a voxel block: close together) a mesh clause first specialises its BSP-tree to
     the bounding box of the batch's own coordinates (exact, bsp_minmax.specialise_box) into the
     scratch tree (cn, co, cp, cq, cm), then runs the points on that: tree-major
-    (bsp_minmax.block_values, registers ``treg``, ``tfa``) when it fits, else point by point."""
+    (bsp_minmax.block_values, registers ``treg``, ``tfa``) when it fits, else point by point.
+
+    With ``lat`` > 0 the m points are a lat^3 lattice (voxel centres, x slowest): a costly
+    clause (:data:`SEPARABLE`) that depends on one or two of the coordinates only (``dep``:
+    scratch for the coordinate bits of each clause) runs once per distinct value of them and is
+    copied to the rest - a superellipsoid's three powers, a gyroid's six sines and cosines.
+    The same operations on the same operands: the same values to the bit."""
     for k in range(n):
         o = op[s + k]
         ck = c[s + k]
+        if lat:
+            dk = _clause_dep(o, a[s + k], b[s + k], dep)
+            dep[k] = dk
+            if 0 < dk < 7 and o in SEPARABLE:
+                _on_lattice(o, a[s + k], b[s + k], ck, reg, k, lat, dk)
+                continue
         if o == X:
             reg[k, :m] = px[:m]
             continue
@@ -614,10 +666,10 @@ def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, orc
     # for its whole tree (150 MB for 1.3M faces) and must not be allocated per few blocks
     per = max(16, (n + 63) // 64)
     for ch in prange((n + per - 1) // per):
-        reg, sj, sv, cn, co, cp, cq, cm, px, py, pz, treg, tfa = _block_scratch(maxlen, m, odepth, orc)
+        reg, sj, sv, cn, co, cp, cq, cm, px, py, pz, treg, tfa, dep = _block_scratch(maxlen, m, odepth, orc)
         for q in range(ch * per, min(n, (ch + 1) * per)):
             _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c, orc, reg, sj, sv, cn, co,
-                          cp, cq, cm, px, py, pz, out, treg, tfa)
+                          cp, cq, cm, px, py, pz, out, treg, tfa, dep)
     return out
 
 
@@ -625,7 +677,7 @@ def eval_blocks(origins, block, h, tape_of, start, length, res, op, a, b, c, orc
 def _block_scratch(maxlen, m, odepth, orc):
     """One thread's scratch for :func:`_block_values` on blocks of m voxels: clause registers,
     the mesh walk's stacks, the block specialisation's node arrays, the voxel coordinates, the
-    tree-major mesh registers and their flags."""
+    tree-major mesh registers and their flags, the clauses' coordinate bits."""
     nn = max(orc[0].shape[0], 1)
     reg = np.empty((max(maxlen, 1), m))
     sj = np.empty((3, odepth + 2), np.int64)
@@ -633,12 +685,13 @@ def _block_scratch(maxlen, m, odepth, orc):
     cn, co = np.empty((nn, 3)), np.empty(nn)
     cp, cq, cm = np.empty(nn, np.int64), np.empty(nn, np.int64), np.empty(nn, np.int64)
     treg = np.empty((min(nn, BLOCK_TREE_MAX) if orc[0].shape[0] else 0, m))  # tree-major mesh registers
-    return reg, sj, sv, cn, co, cp, cq, cm, np.empty(m), np.empty(m), np.empty(m), treg, np.empty(m)
+    return (reg, sj, sv, cn, co, cp, cq, cm, np.empty(m), np.empty(m), np.empty(m), treg, np.empty(m),
+            np.empty(max(maxlen, 1), np.int64))
 
 
 @njit(cache=True)
 def _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c, orc, reg, sj, sv, cn, co, cp, cq,
-                  cm, px, py, pz, out, treg, tfa, slot=-1):
+                  cm, px, py, pz, out, treg, tfa, dep, slot=-1):
     """Values of block q's voxel centres into out[q] (into out[slot] when slot >= 0)."""
     m = block * block * block
     v = 0
@@ -651,7 +704,7 @@ def _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c
                 v += 1
     tp = tape_of[q]
     vals = _run_batch(op, a, b, c, start[tp], length[tp], res[tp], px, py, pz, reg, m, orc, sj, sv, True, cn,
-                      co, cp, cq, cm, treg, tfa)
+                      co, cp, cq, cm, treg, tfa, block, dep)
     v = 0
     row = q if slot < 0 else slot
     for i in range(block):
@@ -698,7 +751,7 @@ def eval_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c, orc
     nclamp = np.zeros(nch, np.int64)
     nvalid = np.zeros(nch, np.int64)
     for ch in prange(nch):
-        reg, sj, sv, cn, co, cp, cq, cm, px, py, pz, treg, tfa = _block_scratch(maxlen, m, odepth, orc)
+        reg, sj, sv, cn, co, cp, cq, cm, px, py, pz, treg, tfa, dep = _block_scratch(maxlen, m, odepth, orc)
         bv = np.empty((1, block, block, block))
         first = -1
         for r in range(ch * per, min(nl, (ch + 1) * per)):
@@ -707,7 +760,7 @@ def eval_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c, orc
             for e in range(lstart[r], lstart[r + 1]):
                 q = lblocks[e]
                 _block_values(q, origins, block, h, tape_of, start, length, res, op, a, b, c, orc, reg, sj, sv, cn,
-                              co, cp, cq, cm, px, py, pz, bv, treg, tfa, 0)
+                              co, cp, cq, cm, px, py, pz, bv, treg, tfa, dep, 0)
                 oi, oj, ok = origins[q, 0] & 7, origins[q, 1] & 7, origins[q, 2] & 7
                 for i in range(block):
                     for j in range(block):
@@ -751,7 +804,7 @@ def eval_points(pts, start, length, res, op, a, b, c, orc, odepth):
         m = min(64, n - lo)
         vals = _run_batch(op, a, b, c, start[0], ln, res[0], pts[lo:lo + m, 0].copy(), pts[lo:lo + m, 1].copy(),
                           pts[lo:lo + m, 2].copy(), reg, m, orc, sj, sv, False, none_n, none_f, none_i, none_i,
-                          none_i, none_r, none_f)
+                          none_i, none_r, none_f, 0, none_i)
         out[lo:lo + m] = vals[:m]
     return out
 

@@ -1,9 +1,11 @@
 """Benchmark: sparse voxelise vs dense NumPy evaluation and OpenVDB AX, plus a scaling table.
 
-    .venv/bin/python bench/voxelise.py [--quick]
+    .venv/bin/python bench/voxelise.py [--quick] [--repeat N]
 
-Default sizes 256^3 and 512^3 (each run in a fresh subprocess); ``--quick``: 128^3 only, every
-run inside this process (a smoke run of under a minute; peak RSS is then cumulative).
+Default sizes 256^3 and 512^3 (each run in a fresh subprocess; sparse, dense and AX alternated
+``--repeat`` times, default 3, and the medians printed with the ratio of every round: this VM's
+speed drifts within minutes); ``--quick``: 128^3 only, once, every run inside this process (a
+smoke run of under a minute; peak RSS is then cumulative).
 
 1. Sparse voxelise (affine culling + block evaluation + VDB build) vs dense NumPy evaluation
    of the same model on every voxel of the domain, at 256^3 and 512^3: time, voxels evaluated.
@@ -170,6 +172,18 @@ def in_subprocess(fn: str, model: str, n: int) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+KEY = {"sparse": "total_s", "dense": "dense_s", "ax": "ax_s"}
+
+
+def alternated(model: str, n: int, repeat: int) -> tuple[dict, dict, dict, list[float]]:
+    """sparse, dense and AX runs alternated ``repeat`` times (each in a fresh process; this VM's
+    speed drifts within minutes), the run of median time of each, and the dense/sparse ratio of
+    every round."""
+    rounds = [{fn: in_subprocess(fn, model, n) for fn in ("sparse", "dense", "ax")} for _ in range(repeat)]
+    med = [sorted((r[fn] for r in rounds), key=lambda x, fn=fn: x[KEY[fn]])[repeat // 2] for fn in KEY]
+    return (*med, [r["dense"]["dense_s"] / r["sparse"]["total_s"] for r in rounds])
+
+
 def print_per_active(pairs: list[tuple[dict, dict]]) -> None:
     """Our voxelise per active voxel vs OpenVDB AX per active voxel of the read-back grid."""
     print("\n## Per active voxel: our voxelise vs OpenVDB AX over the same active voxels"
@@ -193,6 +207,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="128^3 only, runs in this process (smoke run, < 60 s)")
     ap.add_argument("--one", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--repeat", type=int, default=3, help="alternated runs of each side; medians are printed")
     args = ap.parse_args()
     if args.one:
         fn, model, n = args.one
@@ -201,21 +216,20 @@ def main() -> None:
     global INLINE
     INLINE = args.quick
     sizes = [128] if args.quick else [256, 512]
-    print("## Sparse voxelise vs dense NumPy vs OpenVDB AX (band 3, block 4)\n")
-    print("| model | n^3 | sparse s | dense s | dense/sparse | evaluated sparse | evaluated dense | evaluated/active |"
-          " AX s (active voxels) | sparse eval per voxel vs AX |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    repeat = 1 if args.quick else max(1, args.repeat)
+    print(f"## Sparse voxelise vs dense NumPy vs OpenVDB AX (band 3, block 4; medians of {repeat} alternated runs)\n")
+    print("| model | n^3 | sparse s | dense s | dense/sparse | per round | evaluated sparse | evaluated dense |"
+          " evaluated/active | AX s (active voxels) | sparse eval per voxel vs AX |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     pairs = []
     for model in MODELS:
         for n in sizes:
-            s = in_subprocess("sparse", model, n)
-            d = in_subprocess("dense", model, n)
-            a = in_subprocess("ax", model, n)
+            s, d, a, ratios = alternated(model, n, repeat)
             pairs.append((s, a))
             ns_sparse = s["enumerate_eval_s"] / s["voxels_evaluated"] * 1e9
             ns_ax = a["ax_s"] / a["ax_voxels"] * 1e9
             print(f"| {model} | {n} | {s['total_s']:.2f} | {d['dense_s']:.2f} | {d['dense_s'] / s['total_s']:.1f}x |"
-                  f" {s['voxels_evaluated']:,} | {d['voxels_evaluated']:,} | {s['voxels_evaluated'] / s['active']:.2f} |"
+                  f" {' / '.join(f'{x:.1f}' for x in ratios)} | {s['voxels_evaluated']:,} | {d['voxels_evaluated']:,} | {s['voxels_evaluated'] / s['active']:.2f} |"
                   f" {a['ax_s']:.3f} ({a['ax_voxels']:,}) | {ns_sparse:.0f} ns vs {ns_ax:.0f} ns |")
     print_per_active(pairs)
     print("\n## Scaling (sphere r = 0.6, band 3): cost per doubling should be ~4x (area), not 8x (volume)\n")

@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT))
 from pipeline.io.vdbgrids import frep_to_vdb, vdb  # noqa: E402
 from pipeline.io.vdbio import write_vdb  # noqa: E402
 from pipeline.oracles import REGISTRY  # noqa: E402
-from pipeline.voxel.voxelise import voxelise  # noqa: E402
+from pipeline.voxel.voxelise import block_for, voxelise  # noqa: E402
 
 MODELS = {
     # name: (node factory, AX expression of the same field)
@@ -95,13 +95,14 @@ def run_sparse(model_name: str, n: int) -> dict:
     # warm-up at 32^3: loads the cached Numba kernels once per process (~0.5 s), a fixed cost
     # that a batch pays once and that the dense NumPy reference does not have
     wlo, whi, wh = domain(32, model_name)
-    frep_to_vdb(*_pair(voxelise(model, wlo, whi, wh, 3.0, 4)), "frep")
+    block = block_for(model)  # the stage's default (block: auto)
+    frep_to_vdb(*_pair(voxelise(model, wlo, whi, wh, 3.0, block)), "frep")
     t0 = time.perf_counter()
-    res = voxelise(model, imin, imax, h, 3.0, 4)
+    res = voxelise(model, imin, imax, h, 3.0, block)
     t1 = time.perf_counter()
     grid = frep_to_vdb(res.blocks, res.inside_boxes, "frep")
     t2 = time.perf_counter()
-    return {"model": model_name, "n": n, "enumerate_eval_s": t1 - t0, "vdb_s": t2 - t1, "total_s": t2 - t0,
+    return {"model": model_name, "n": n, "block": block, "enumerate_eval_s": t1 - t0, "vdb_s": t2 - t1, "total_s": t2 - t0,
             "voxels_evaluated": res.stats["voxels_evaluated"], "active": res.stats["active_voxels"],
             "cells_visited": res.stats["cells_visited"], "grid_active": int(grid.activeVoxelCount()),
             "evaluate_s": res.stats["evaluate_seconds"], "enumerate_s": res.stats["enumerate_seconds"],
@@ -142,7 +143,7 @@ def run_ax(model_name: str, n: int) -> dict:
     throughput on the same topology."""
     model = MODELS[model_name][0]()
     imin, imax, h = domain(n, model_name)
-    res = voxelise(model, imin, imax, h, 3.0, 4)
+    res = voxelise(model, imin, imax, h, 3.0, block_for(model))
     grid = written_grid(res)
     ref = {tuple(map(int, p)): v for p, v in zip(*res.blocks.active_voxels(), strict=True)}
     t0 = time.perf_counter()
@@ -217,10 +218,10 @@ def main() -> None:
     INLINE = args.quick
     sizes = [128] if args.quick else [256, 512]
     repeat = 1 if args.quick else max(1, args.repeat)
-    print(f"## Sparse voxelise vs dense NumPy vs OpenVDB AX (band 3, block 4; medians of {repeat} alternated runs)\n")
-    print("| model | n^3 | sparse s | dense s | dense/sparse | per round | evaluated sparse | evaluated dense |"
+    print(f"## Sparse voxelise vs dense NumPy vs OpenVDB AX (band 3, the stage's block: auto; medians of {repeat} alternated runs)\n")
+    print("| model | n^3 | block | sparse s | dense s | dense/sparse | per round | evaluated sparse | evaluated dense |"
           " evaluated/active | AX s (active voxels) | sparse eval per voxel vs AX |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     pairs = []
     for model in MODELS:
         for n in sizes:
@@ -228,7 +229,7 @@ def main() -> None:
             pairs.append((s, a))
             ns_sparse = s["enumerate_eval_s"] / s["voxels_evaluated"] * 1e9
             ns_ax = a["ax_s"] / a["ax_voxels"] * 1e9
-            print(f"| {model} | {n} | {s['total_s']:.2f} | {d['dense_s']:.2f} | {d['dense_s'] / s['total_s']:.1f}x |"
+            print(f"| {model} | {n} | {s['block']} | {s['total_s']:.2f} | {d['dense_s']:.2f} | {d['dense_s'] / s['total_s']:.1f}x |"
                   f" {' / '.join(f'{x:.1f}' for x in ratios)} | {s['voxels_evaluated']:,} | {d['voxels_evaluated']:,} | {s['voxels_evaluated'] / s['active']:.2f} |"
                   f" {a['ax_s']:.3f} ({a['ax_voxels']:,}) | {ns_sparse:.0f} ns vs {ns_ax:.0f} ns |")
     print_per_active(pairs)

@@ -123,7 +123,7 @@ def _plain_bounds(bounds: Any) -> list:
 
 
 def voxelise(shape: Shape, bounds: Any, voxel_size: float | None = None, resolution: int | None = None,
-             band: float = 3.0, block: int = 4, t: float = 0.0):
+             band: float = 3.0, block: int | str = "auto", t: float = 0.0):
     """The ``frep`` grid of ``shape`` over ``bounds`` as a pyopenvdb FloatGrid, in memory.
 
     Runs the ``voxelise`` stage itself (stages/voxelise.py) on a job made from the shape, so the

@@ -15,6 +15,7 @@ from pydantic import Field
 from pipeline.io.vdbgrids import frep_to_vdb
 from pipeline.voxel.voxelise import (
     assemble,
+    block_for,
     bricks_for,
     estimate_band_bytes,
     merge_samples,
@@ -30,18 +31,21 @@ ROOT_CELL_BYTES = 160  # per top-level cell of the enumeration: its index arrays
 
 class Params(StageParams):
     band: float = Field(default=3.0, gt=0, le=64, description="narrow-band half-width in voxels")
-    block: Literal[2, 4, 8] = Field(default=4, description="voxels per side of an evaluated block")
+    block: Literal["auto", 2, 4, 8] = Field(
+        default="auto", description="voxels per side of an evaluated block; auto: 8 (one leaf), 4 for models with "
+        "meshes or oracle nodes (pipeline.voxel.voxelise.block_for)")
 
 
 def run(ctx, p: Params) -> dict:
     job, dom = ctx.job, ctx.job.domain
     imin, imax, h = dom.index_min, dom.index_max, dom.voxel_size
+    block = block_for(job.model, job.t, p.block)
     if job.bricks:
-        root = root_size_for(dom.dims, p.block)
-        tasks = [(lo, hi, root, p.band, p.block) for lo, hi in bricks_for(imin, imax, job.bricks, p.block)]
+        root = root_size_for(dom.dims, block)
+        tasks = [(lo, hi, root, p.band, block) for lo, hi in bricks_for(imin, imax, job.bricks, block)]
         res = assemble(merge_samples(ctx.map_with(sample_brick, tasks)), imin, imax, h, p.band)
     else:
-        res = voxelise(job.model, imin, imax, h, p.band, p.block, job.t, progress=ctx.progress)
+        res = voxelise(job.model, imin, imax, h, p.band, block, job.t, progress=ctx.progress)
     grid = frep_to_vdb(res.blocks, res.inside_boxes, "frep", outside_boxes=res.outside_boxes, domain=(imin, imax))
     grid.updateMetadata({**ctx.grid_metadata("voxelise", p), "band_voxels": float(p.band)})
     ctx.grids["frep"] = grid
@@ -61,7 +65,8 @@ estimate_bytes = band_only  # the band estimate is this stage's own peak
 def enumeration_bytes(job, p: Params) -> tuple[float, str]:
     """Memory of the top-level cells every voxelisation (and :func:`estimate_band`) enumerates,
     counted in floats (a huge domain must not overflow an integer)."""
-    roots = float(np.prod(np.ceil(job.domain.dims / root_size_for(job.domain.dims, p.block)) + 1))
+    root = root_size_for(job.domain.dims, block_for(job.model, job.t, p.block))
+    roots = float(np.prod(np.ceil(job.domain.dims / root) + 1))
     return roots * ROOT_CELL_BYTES, f"the {roots:.3g} top-level cells of voxelise"
 
 

@@ -74,7 +74,7 @@ def test_validate_prints_normalised_config(tmp_path, capsys):
     assert main(["validate", str(cfg)]) == 0
     out = capsys.readouterr().out
     assert "voxel_size: 0.041666" in out and "rfunc: r0" not in out or "union" in out
-    assert "band: 3.0" in out and "block: 4" in out
+    assert "band: 3.0" in out and "block: auto" in out
 
 
 def test_run_writes_vdb_and_manifest(tmp_path):

@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from pipeline.voxel.voxelise import block_for
 from stages import REGISTRY
 
 _LEVEL = re.compile(r"^level (\d+): (\d+) cells$")
@@ -134,7 +135,8 @@ class BatchProgress:
 
     def _block(self) -> int:
         """The voxelise block size of the jobs (4 when they differ or none says)."""
-        blocks = {p.block for j in self.jobs for n, p in getattr(j, "stages", []) if n == "voxelise"}
+        blocks = {block_for(j.model, j.t, p.block) for j in self.jobs for n, p in getattr(j, "stages", [])
+                  if n == "voxelise"}
         return blocks.pop() if len(blocks) == 1 else 4
 
     def __exit__(self, *exc: Any) -> None:

@@ -13,6 +13,7 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.io.vdbgrids import frep_to_vdb
+from pipeline.sparse.grid import LEAF
 from pipeline.voxel.voxelise import (
     assemble,
     block_for,
@@ -65,7 +66,8 @@ estimate_bytes = band_only  # the band estimate is this stage's own peak
 def enumeration_bytes(job, p: Params) -> tuple[float, str]:
     """Memory of the top-level cells every voxelisation (and :func:`estimate_band`) enumerates,
     counted in floats (a huge domain must not overflow an integer)."""
-    root = root_size_for(job.domain.dims, block_for(job.model, job.t, p.block))
+    # the top cells do not depend on a block of at most a leaf: no trace of the model here
+    root = root_size_for(job.domain.dims, LEAF)
     roots = float(np.prod(np.ceil(job.domain.dims / root) + 1))
     return roots * ROOT_CELL_BYTES, f"the {roots:.3g} top-level cells of voxelise"
 

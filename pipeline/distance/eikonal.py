@@ -410,11 +410,10 @@ def solve_distance(
     _positive(sign, inside)
     del sign
     state = _excluded_state(grid.origins, lo, hi)
-    # float32 as the output (the FIM rounds to it as it computes): half the memory to touch
-    # (1.1 GB of float64 at 1024^3, first touched at ~2 s/GB on this VM); its pages go back to
-    # the OS while the output is made
+    # float32 as the output (the FIM rounds to it as it computes): half the memory of float64
+    # (1.1 GB at 1024^3); its pages go back to the OS while the output is made
     d = mapped_empty(inside.shape, np.float32)
-    _fill_inf(d)  # first touch of the pages on every thread
+    _fill_inf(d)
     nbr27 = block_neighbours27(grid)
     # frep is read in its own blocks through brow (no copy of it in the working layout)
     n_frozen, n_quadric = init_interface(band.values, band.active, d, state, nbr27, order == 2, brow)

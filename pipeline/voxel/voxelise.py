@@ -50,6 +50,7 @@ from pipeline.model.tape import (
     first_nonfinite,
     specialise,
 )
+from pipeline.sparse.blockwrite import mapped_empty
 from pipeline.sparse.grid import LEAF, LEAF_LOG2, BlockGrid, pack_keys
 from pipeline.util.jit import njit
 from pipeline.voxel.band import cull_pad_voxels, mark_band
@@ -416,8 +417,8 @@ def voxelise_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: float, band
         sk = keys[order]
         first = np.flatnonzero(np.concatenate([[True], sk[1:] != sk[:-1]]))
         L = len(first)
-        values = np.empty((L, LEAF, LEAF, LEAF), np.float32)  # first touched by the pass, leaf by leaf
-        known = np.empty((L, LEAF, LEAF, LEAF), bool)
+        values = mapped_empty((L, LEAF, LEAF, LEAF), np.float32)
+        known = mapped_empty((L, LEAF, LEAF, LEAF), bool)
         lstart = np.append(first, len(blocks)).astype(np.int64)
         bad, clamped, nvalid = eval_leaves(
             blocks, block, float(h), np.arange(len(blocks), dtype=np.int64), *pool.arrays(), *pool.oracle.arrays(),
@@ -425,7 +426,7 @@ def voxelise_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: float, band
             np.float32(-1.0), values, known)
         if bad < 0:
             _fill_inside_cells(values, sk[first], levels.inside, 1.0)
-            act = np.empty((L, LEAF, LEAF, LEAF), bool)  # every flag is set by mark_band
+            act = mapped_empty((L, LEAF, LEAF, LEAF), bool)  # every flag is set by mark_band
             grid = BlockGrid(h, -1.0, leaf_of[order[first]], values, act)  # sorted keys: rows stay valid
     t2 = time.perf_counter()
     levels.stats["evaluator"] = "tape"

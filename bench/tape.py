@@ -50,7 +50,7 @@ def run(job, tape: bool, repeat: int = 1) -> tuple[float, dict]:
     is too short to time; its ratio to the union moved 2.9x-5.0x between single runs)."""
     vox.USE_TAPE = tape
     d = job.domain
-    block = vox.block_for(job.model, job.t)  # the stage's default (block: auto): 8 for a tape, 4 node by node
+    block = vox.block_for(job.model)  # the stage's default (block: auto): 8, 4 with an oracle or node by node
     times = []
     for _ in range(repeat):
         t0 = time.perf_counter()

@@ -40,7 +40,7 @@ class Params(StageParams):
 def run(ctx, p: Params) -> dict:
     job, dom = ctx.job, ctx.job.domain
     imin, imax, h = dom.index_min, dom.index_max, dom.voxel_size
-    block = block_for(job.model, job.t, p.block)
+    block = block_for(job.model, p.block)
     if job.bricks:
         root = root_size_for(dom.dims, block)
         tasks = [(lo, hi, root, p.band, block) for lo, hi in bricks_for(imin, imax, job.bricks, block)]

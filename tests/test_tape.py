@@ -162,6 +162,29 @@ def test_oracle_nodes_are_not_traced(tmp_path) -> None:
     assert pt.compile_model(job.model, job.t) is None
 
 
+def test_auto_block_follows_the_oracles(tmp_path) -> None:
+    """``block: auto`` is 8 for every node type the tape records (each lowers to a tape without a
+    mesh clause) and 4 once an oracle is in the tree (a min_max mesh: a BSP clause; an r0 mesh:
+    not traced), decided from the node types without tracing the model."""
+    import trimesh
+
+    from pipeline.voxel.voxelise import block_for
+
+    for name, node in NODES.items():
+        job = job_of(tmp_path, node)
+        tp = pt.compile_model(job.model, job.t)
+        assert tp is not None and not np.any((tp.op == pt.BSP) | (tp.op == pt.BSPXY)), name
+        assert block_for(job.model) == 8, name
+        assert block_for(job.model, block=4) == 4
+    path = tmp_path / "ico.off"
+    trimesh.creation.icosphere(1, 0.6).export(str(path))
+    for rfunc in ("min_max", "r0"):
+        job = job_of(tmp_path, f"union: [{{mesh: {{path: {path}, rfunc: {rfunc}}}}}, {{sphere: {{radius: 0.2}}}}]")
+        assert "_tapes" not in job.model.__dict__
+        assert block_for(job.model) == 4
+        assert "_tapes" not in job.model.__dict__  # nothing traced to decide
+
+
 def test_union_of_many_parts_specialises_to_the_few_near_a_cell(tmp_path) -> None:
     rng = np.random.default_rng(2)
     kids = ", ".join(f"{{sphere: {{center: [{x:.3f}, {y:.3f}, {z:.3f}], radius: 0.04}}}}"

@@ -135,7 +135,7 @@ class BatchProgress:
 
     def _block(self) -> int:
         """The voxelise block size of the jobs (4 when they differ or none says)."""
-        blocks = {block_for(j.model, j.t, p.block) for j in self.jobs for n, p in getattr(j, "stages", [])
+        blocks = {block_for(j.model, p.block) for j in self.jobs for n, p in getattr(j, "stages", [])
                   if n == "voxelise"}
         return blocks.pop() if len(blocks) == 1 else 4
 

@@ -69,6 +69,9 @@ class Node(ABC):
     #: the node does expensive work (a solve) when first evaluated: loading a config does not
     #: evaluate a tree that holds one (its values are checked as the stages evaluate it)
     solves_on_first_use: ClassVar[bool] = False
+    #: an oracle: the node samples a mesh, a grid or a solved field (pipeline.oracles) instead
+    #: of a formula the tape records, and its voxels cost more to evaluate
+    oracle: ClassVar[bool] = False
 
     def __init__(self, params: Params, where: str = ""):
         self.params = params

@@ -30,6 +30,8 @@ from pipeline.util.errors import InputError
 class Component(Node):
     """The ``index``-th connected component of ``of`` at the given tolerance."""
 
+    oracle = True
+
     class Params(Params):
         of: Any
         index: int = Field(default=1, ge=1)

@@ -28,6 +28,8 @@ class GridNode(Node):
     samples whose trilinear support meets it, which is rigorous for trilinear interpolation.
     """
 
+    oracle = True
+
     class Params(Params):
         path: str
         name: str | None = None

@@ -69,6 +69,8 @@ class _Solve(NamedTuple):
 class HFRepNode(Node):
     """``hfrep: {of: node, resolution | voxel_size, bounds, band, step, slope, max_distance, order}``."""
 
+    oracle = True
+
     class Params(Params):
         of: Any
         resolution: int | None = Field(default=None, gt=0, le=1024, description="voxels along the longest side")

@@ -27,6 +27,8 @@ class Mesh(Node):
     translations; a rotated or deformed mesh gets the hull of its transformed box).
     """
 
+    oracle = True
+
     class Params(Params):
         path: str
         method: Literal["bsp", "adf"] = "bsp"

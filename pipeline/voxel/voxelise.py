@@ -39,8 +39,6 @@ from numba import prange
 
 from pipeline.model.base import Node
 from pipeline.model.tape import (
-    BSP,
-    BSPXY,
     Oracle,
     Tape,
     bound_cull_decide,
@@ -462,21 +460,20 @@ def _set_proxies(values, known, bg):
             flat_v[n] = bg if flat_v[n] > 0 else -bg
 
 
-def block_for(model: Node, t: float = 0.0, block: int | str = "auto") -> int:
-    """The edge of the evaluated blocks: ``block`` itself, or for ``"auto"`` 8 when the model
-    lowers to a tape without mesh clauses, else 4.
+def block_for(model: Node, block: int | str = "auto") -> int:
+    """The edge of the evaluated blocks: ``block`` itself, or for ``"auto"`` 8 when every node
+    of the model is a formula the tape records, 4 when one is an oracle (a mesh, a grid, a
+    solved field: ``Node.oracle``) or without the tape; from the node types, nothing is traced.
 
     With 8, a block is one leaf: the octree stops a level earlier (at 512^3 the demo's
     enumeration took 0.13 s with 4 and 0.025 s with 8), and a clause of one coordinate runs 8
     times per 512 voxels (:data:`pipeline.model.tape.SEPARABLE`); more voxels are evaluated
     (+24 % for the demo) but the stage was 1.3-2.3x faster for every FRep model measured
     (docs/performance.md, session 22). A mesh clause costs more per voxel, and there 4 was
-    2-12 % faster; an untraceable model (an oracle node) runs node by node in NumPy, where
-    evaluation dominates."""
+    2-12 % faster; the other oracles run node by node in NumPy, where evaluation dominates."""
     if block != "auto":
         return int(block)
-    tape = compile_model(model, t) if USE_TAPE else None
-    if tape is None or np.any((tape.op == BSP) | (tape.op == BSPXY)):
+    if not USE_TAPE or any(node.oracle for node in model.walk()):
         return 4
     return 8
 

@@ -105,14 +105,16 @@ def check_lattice(tp: pt.Tape, rng: np.random.Generator) -> None:
     """Blocks of voxel centres (eval_blocks: a clause of one or two coordinates runs once per
     distinct value of them, pt.SEPARABLE) give the point evaluator's values to the bit, NaN and
     inf included, at every block size the voxeliser offers."""
-    n = len(tp)
     for block, h in ((2, 0.05), (4, 0.013), (8, 0.0071)):
         blocks = rng.integers(int(-1.2 / h), int(1.2 / h) - block, (30, 3))
-        got = pt.eval_blocks(blocks, block, h, np.zeros(len(blocks), np.int64), np.zeros(1, np.int64), np.array([n]),
-                             np.array([tp.res]), tp.op, tp.a, tp.b, tp.c, *tp.oracle.arrays(), n)
-        idx = np.stack(np.meshgrid(*[np.arange(block)] * 3, indexing="ij"), -1).reshape(-1, 3)
-        pts = ((blocks[:, None, :] + idx[None]) * h).reshape(-1, 3)
-        np.testing.assert_array_equal(got.reshape(-1), pt.evaluate_with(tp, pts))
+        got = pt.eval_blocks_with(tp, blocks, block, h)
+        np.testing.assert_array_equal(got.reshape(-1), pt.evaluate_with(tp, block_points(blocks, block, h)))
+
+
+def block_points(blocks: np.ndarray, block: int, h: float) -> np.ndarray:
+    """World centres of the voxels of blocks (N, 3) of ``block``^3, in eval_blocks' order."""
+    idx = np.stack(np.meshgrid(*[np.arange(block)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    return ((np.asarray(blocks)[:, None, :] + idx[None]) * h).reshape(-1, 3)
 
 
 def test_lattice_clauses_of_one_coordinate_run_once_per_value(tmp_path) -> None:
@@ -175,7 +177,7 @@ def test_auto_block_follows_the_oracles(tmp_path) -> None:
         tp = pt.compile_model(job.model, job.t)
         assert tp is not None and not np.any((tp.op == pt.BSP) | (tp.op == pt.BSPXY)), name
         assert block_for(job.model) == 8, name
-        assert block_for(job.model, block=4) == 4
+    assert block_for(job.model, block=4) == 4  # a block that is given is kept
     path = tmp_path / "ico.off"
     trimesh.creation.icosphere(1, 0.6).export(str(path))
     for rfunc in ("min_max", "r0"):
@@ -311,12 +313,8 @@ def test_block_specialised_mesh_tree_is_exact(tmp_path, seed, h) -> None:
     tp = pt.compile_model(job.model, 0.0)
     blocks = np.concatenate([_blocks_near_surface(tp, h, 150, seed),
                              np.random.default_rng(seed).integers(int(-1.1 / h), int(1.1 / h), (50, 3))])
-    n = len(tp)
-    got = pt.eval_blocks(blocks, 4, h, np.zeros(len(blocks), np.int64), np.zeros(1, np.int64), np.array([n]),
-                         np.array([tp.res]), tp.op, tp.a, tp.b, tp.c, *tp.oracle.arrays(), n)
-    idx = np.stack(np.meshgrid(*[np.arange(4)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    pts = ((blocks[:, None, :] + idx[None]) * h).reshape(-1, 3)
-    np.testing.assert_array_equal(got.reshape(-1), pt.evaluate_with(tp, pts))
+    got = pt.eval_blocks_with(tp, blocks, 4, h)
+    np.testing.assert_array_equal(got.reshape(-1), pt.evaluate_with(tp, block_points(blocks, 4, h)))
     o = tp.oracle
     nn = len(o.mode)
     scratch = (np.empty((nn, 3)), np.empty(nn), *(np.empty(nn, np.int64) for _ in range(3)))
@@ -471,9 +469,7 @@ def test_closed_mesh_cells_are_culled_by_the_surface(tmp_path) -> None:
     near = ijk[trimesh.proximity.closest_point(mesh, ijk * h)[1] <= band * h]
     have = {tuple(b) for b in s.blocks}
     assert len(near) > 1000 and all(tuple((v // 4) * 4) in have for v in near)
-    np.testing.assert_array_equal(s.values.reshape(-1), job.model.evaluate(
-        ((s.blocks[:, None, :] + np.stack(np.meshgrid(*[np.arange(4)] * 3, indexing="ij"), -1).reshape(-1, 3))
-         * h).reshape(-1, 3), job.t))
+    np.testing.assert_array_equal(s.values.reshape(-1), job.model.evaluate(block_points(s.blocks, 4, h), job.t))
     # without the surface (the interval walk) far blocks are kept
     walk = load_job(cfg)
     walk.model.impl.minmax_tree.surface = None

@@ -448,9 +448,8 @@ def solve_distance(
         rows = np.arange(len(d))
     # the output values are written over the working array's leading rows (rows ascend, so a
     # chunk reads only rows at or after its own; each is read into a scratch first), and the
-    # rest goes back to the OS: no second array of the distance to fault in (on this VM a page
-    # the process has not touched costs ~1.5 s/GB) and a lower peak; both on mappings the stage
-    # can release as it writes the grids (blockwrite.release_rows)
+    # rest goes back to the OS: no second array of the distance to fault in, and a lower peak;
+    # both on mappings the stage can release as it writes the grids (blockwrite.release_rows)
     solved = mapped_empty((len(rows), LEAF, LEAF, LEAF), bool)
     scratch = np.empty((min(FINISH_CHUNK, len(rows)), LEAF, LEAF, LEAF), np.float32)
     n_solved = 0

@@ -83,6 +83,7 @@ class BatchProgress:
         self.current = ""  # the running stage
         self.started = time.monotonic()
         self.levels: LevelEstimate | None = None
+        self.block: int | None = None  # the jobs' voxelise block (_block), found once
         self.last = ""  # the last line shown on the stage bar (tests read it)
 
     def __enter__(self) -> BatchProgress:
@@ -134,10 +135,13 @@ class BatchProgress:
             self.stage_bar.set_postfix_str(line, refresh=True)
 
     def _block(self) -> int:
-        """The voxelise block size of the jobs (4 when they differ or none says)."""
-        blocks = {block_for(j.model, p.block) for j in self.jobs for n, p in getattr(j, "stages", [])
-                  if n == "voxelise"}
-        return blocks.pop() if len(blocks) == 1 else 4
+        """The voxelise block size of the jobs (4 when they differ or none says); once per batch
+        (block_for walks each job's model tree)."""
+        if self.block is None:
+            blocks = {block_for(j.model, p.block) for j in self.jobs for n, p in getattr(j, "stages", [])
+                      if n == "voxelise"}
+            self.block = blocks.pop() if len(blocks) == 1 else 4
+        return self.block
 
     def __exit__(self, *exc: Any) -> None:
         for bar in (self.stage_bar, self.jobs_bar):

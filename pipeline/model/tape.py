@@ -401,6 +401,15 @@ def evaluate_with(tape: Tape, points: np.ndarray) -> np.ndarray:
                        tape.b, tape.c, *tape.oracle.arrays())
 
 
+def eval_blocks_with(tape: Tape, origins: np.ndarray, block: int, h: float) -> np.ndarray:
+    """Values (N, block, block, block) of one tape at the voxel centres of blocks (the voxeliser's
+    lattice evaluator, :func:`eval_blocks`)."""
+    o = np.ascontiguousarray(origins, dtype=np.int64).reshape(-1, 3)
+    n = len(tape)
+    return eval_blocks(o, int(block), float(h), np.zeros(len(o), np.int64), np.zeros(1, np.int64), np.array([n]),
+                       np.array([tape.res]), tape.op, tape.a, tape.b, tape.c, *tape.oracle.arrays(), max(n, 1))
+
+
 def gradient_with(tape: Tape, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Values (N,) and gradients (N, 3) of one tape at points (N, 3) (forward mode)."""
     p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)

@@ -115,6 +115,28 @@ def test_rfunctions_match_the_papers_formulas(f1: float, f2: float, family: str,
     assert float(rf.r_or(np.array(f1), np.array(f2), family, scale=scale)) == rk.r_or(f1, f2, code, rf.SARDF_K, scale)
 
 
+magnitude = st.one_of(finite, st.sampled_from([0.0, -0.0, 1e-160, -1e-160, 3e-300, 1e200, -1e200, 1e300]))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(magnitude, magnitude), min_size=1, max_size=300), st.sampled_from(FAMILIES),
+       st.sampled_from([np.inf, 1.0, 50.0]), st.sampled_from([1.0, -1.0]), st.sampled_from([1.0, -1.0]),
+       st.sampled_from([1.0, -1.0]))
+def test_and_rows_is_r_and_on_every_lane(pairs, family: str, scale: float, sa: float, sb: float,
+                                         so: float) -> None:
+    """The vectorised row form (sqrt instead of hypot, the magnitude control in a second pass)
+    equals the scalar r_and on every lane, with its sign, for magnitudes whose squares
+    overflow or underflow too (they go through the scalar pass)."""
+    a = np.array([p[0] for p in pairs])
+    b = np.array([p[1] for p in pairs])
+    out = np.full(len(a) + 3, np.nan)
+    rk.and_rows(a, sa, b, sb, so, out, len(a), FAMILY_CODE[family], rf.SARDF_K, scale)
+    want = np.array([so * rk.r_and(sa * x, sb * y, FAMILY_CODE[family], rf.SARDF_K, scale) for x, y in pairs])
+    np.testing.assert_allclose(out[:len(a)], want, rtol=4e-16, atol=0)
+    assert np.array_equal(np.sign(out[:len(a)]), np.sign(want))
+    assert np.isnan(out[len(a):]).all()  # nothing written past n
+
+
 @pytest.mark.parametrize("family", FAMILIES)
 def test_rfunctions_are_nondecreasing(family: str) -> None:
     """Dense check that every family is monotone in each argument (basis of bound())."""
@@ -203,6 +225,29 @@ def test_compiled_matches_reference_formula(family: str, planes: str) -> None:
     field = BSPField.from_mesh(mesh, rfunc=family, planes=planes, seed=1)
     p = _random_points(mesh, 2000, 0)
     np.testing.assert_allclose(field.evaluate(p), _reference_eval(field, p), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("family", ["r0", "sardf"])
+def test_block_kernel_matches_reference_on_a_deep_tree(family: str) -> None:
+    """A bumpy icosphere's tree (about 2,000 nodes, values beyond the magnitude control far out):
+    the block kernel (256 points per block, one register row per live node) equals the recursive
+    formula at a point count that is not a multiple of the block, near the surface and far out,
+    and its bounds hold the values."""
+    sphere = trimesh.creation.icosphere(3)
+    rng = np.random.default_rng(7)
+    sphere.vertices *= 1 + 0.15 * rng.random((len(sphere.vertices), 1))
+    field = BSPField.from_mesh(sphere, rfunc=family)
+    assert field.stats["nodes"] > 1000 and field.stats["depth"] > 10, field.stats
+    p = np.concatenate([rng.uniform(-1.3, 1.3, (700, 3)), rng.uniform(-20, 20, (301, 3))])
+    v = field.evaluate(p)
+    ref = _reference_eval(field, p)
+    assert np.abs(ref).max() > field.magnitude_scale  # the second (compress) pass ran
+    np.testing.assert_allclose(v, ref, rtol=1e-12, atol=1e-12)
+    assert np.array_equal(np.sign(v), np.sign(ref))
+    lo = p - rng.uniform(0, 0.05, p.shape)
+    hi = p + rng.uniform(0, 0.05, p.shape)
+    flo, fhi = field.bound(lo, hi)
+    assert np.all(flo <= v) and np.all(v <= fhi)
 
 
 @pytest.mark.parametrize("family", FAMILIES)

@@ -241,7 +241,7 @@ def test_min_max_mesh_is_one_oracle_clause_specialised_to_a_start_node(tmp_path)
     (min of planes), which a cell skips down to the first plane near it."""
     import trimesh
 
-    from pipeline.mesh.bsp import _eval_tree, _subtree_sizes
+    from pipeline.mesh.bsp import _subtree_sizes, evaluate_tree
 
     path = tmp_path / "torus.off"
     trimesh.creation.torus(0.5, 0.2, major_sections=24, minor_sections=12).export(str(path))
@@ -250,7 +250,7 @@ def test_min_max_mesh_is_one_oracle_clause_specialised_to_a_start_node(tmp_path)
     assert tp.counts().get("bsp") == 1 and len(tp) <= 6, tp.counts()
     t = next(iter(job.model.walk())).impl.tree
     p = np.random.default_rng(3).uniform(-0.9, 0.9, (5000, 3))
-    full = _eval_tree(p, t.normals, t.offsets, t.pos, t.neg, t.mode, 0, 0.0, 1.0)  # every node, no shortcut
+    full = evaluate_tree(t, p, "min_max")  # every node, no shortcut
     np.testing.assert_array_equal(pt.evaluate_with(tp, p), full)
     c = np.array([0.7, 0.0, 0.0])
     sub = specialised(tp, c - 0.03, c + 0.03)

@@ -45,7 +45,7 @@ from numba import prange
 from scipy.optimize import linprog
 
 from pipeline.field.rfunctions import FAMILIES, SARDF_K
-from pipeline.field.rkernels import r_and, r_or
+from pipeline.field.rkernels import and_rows
 from pipeline.field.small_lp import max_margin
 from pipeline.mesh import bsp_minmax
 from pipeline.mesh.bsp_build import BIG_NODE, plane_ids, subtree_sizes
@@ -69,97 +69,134 @@ MODE_OPS = np.array([0, 1, 1, 4, 2, 2])  # binary R-functions per node mode
 # R-functions: pipeline.field.rkernels (r_and / r_or with the family codes of FAMILY_CODE)
 
 
-@njit(cache=True)
-def _node_value(mode: int, fa: float, fb: float, fc: float, fam: int, k: float, c: float) -> float:
-    """One node of the section 3.3.2 formula (modes 4, 5: the section 3.2 special cases)."""
-    if mode == 0:
-        return fa
-    if mode == 1:
-        return r_and(fa, fb, fam, k, c)
-    if mode == 2:
-        return r_or(fa, fc, fam, k, c)
-    if mode == 3:
-        return r_or(r_and(r_or(fa, fc, fam, k, c), fb, fam, k, c), r_and(-fa, fc, fam, k, c), fam, k, c)
-    if mode == 4:
-        return r_and(r_or(fa, fc, fam, k, c), fb, fam, k, c)
-    return r_and(r_or(-fa, fb, fam, k, c), fc, fam, k, c)
-
-
-# --------------------------------------------------------------------------- compiled kernels
+LANES = 256  # points (or boxes) per block of the tree kernel: its rows stay in L1/L2
 
 
 @njit(cache=True)
-def _eval_point(p, normals, offsets, pos, neg, mode, fam, k, scale, vals) -> float:
-    m = normals.shape[0]
-    d = normals.shape[1]
+def tree_slots(pos: np.ndarray, neg: np.ndarray) -> tuple[np.ndarray, int]:
+    """Row of each node's value in the tree kernel's block (a register allocation of the
+    post-order tree): a node's row is taken before its children's rows are freed, so no node
+    writes the row it reads (LLVM's alias check would fall back to scalar code). About the
+    tree's depth rows in all (23 for elephant's 13,018 nodes)."""
+    m = pos.shape[0]
+    slot = np.empty(m, np.int64)
+    free = np.empty(m + 2, np.int64)
+    nfree = 0
+    top = 0
     for j in range(m):
-        fa = offsets[j]
+        if nfree > 0:
+            nfree -= 1
+            slot[j] = free[nfree]
+        else:
+            slot[j] = top
+            top += 1
+        for child in (pos[j], neg[j]):
+            if child >= 0:
+                free[nfree] = slot[child]
+                nfree += 1
+    return slot, top
+
+
+@njit(cache=True)
+def _node_rows(md, fa, nfa, fb, fc, out, t1, t2, n, fam, k, cc):
+    """One node of the section 3.3.2 formula over a block's rows (modes 4, 5: the section 3.2
+    special cases). ``nfa`` is the row that stands for -fa: -fa itself at points, the other end
+    of fa's interval (negated) when the rows are a bound (every R-function is nondecreasing in
+    each argument, so the lower bound takes -fa's lower end, -hi(fa))."""
+    if md == 0:
+        out[:n] = fa[:n]
+    elif md == 1:  # fa AND fb
+        and_rows(fa, 1.0, fb, 1.0, 1.0, out, n, fam, k, cc)
+    elif md == 2:  # fa OR fc
+        and_rows(fa, -1.0, fc, -1.0, -1.0, out, n, fam, k, cc)
+    elif md == 3:  # ((fa OR fc) AND fb) OR (-fa AND fc), eq. 4
+        and_rows(fa, -1.0, fc, -1.0, -1.0, t1, n, fam, k, cc)
+        and_rows(t1, 1.0, fb, 1.0, 1.0, t2, n, fam, k, cc)
+        and_rows(nfa, 1.0, fc, 1.0, 1.0, t1, n, fam, k, cc)
+        and_rows(t2, -1.0, t1, -1.0, -1.0, out, n, fam, k, cc)
+    elif md == 4:  # (fa OR fc) AND fb
+        and_rows(fa, -1.0, fc, -1.0, -1.0, t1, n, fam, k, cc)
+        and_rows(t1, 1.0, fb, 1.0, 1.0, out, n, fam, k, cc)
+    else:  # (-fa OR fb) AND fc
+        and_rows(nfa, -1.0, fb, -1.0, -1.0, t1, n, fam, k, cc)
+        and_rows(t1, 1.0, fc, 1.0, 1.0, out, n, fam, k, cc)
+
+
+@njit(cache=True)
+def _plane_rows(j, normals, offsets, mid, half, n, side, pad, fa, nfa):
+    """fa and the -fa row of node j's plane over a block: the signed distance at points
+    (side 0), the lower (side -1) or upper (+1) end of its range over boxes (exact for an affine
+    function: centre -+ radius), widened by ``pad``."""
+    o = offsets[j]
+    d = normals.shape[1]
+    if d == 3:  # one pass over the block (the common case)
+        w0, w1, w2 = normals[j, 0], normals[j, 1], normals[j, 2]
+        for i in range(n):
+            fa[i] = o + w0 * mid[0, i] + w1 * mid[1, i] + w2 * mid[2, i]
+    else:
+        for i in range(n):
+            fa[i] = o
         for c in range(d):
-            fa += normals[j, c] * p[c]
-        fb = vals[pos[j]] if pos[j] >= 0 else 0.0
-        fc = vals[neg[j]] if neg[j] >= 0 else 0.0
-        vals[j] = _node_value(mode[j], fa, fb, fc, fam, k, scale)
-    return vals[m - 1]
+            w = normals[j, c]
+            for i in range(n):
+                fa[i] += w * mid[c, i]
+    if side == 0:
+        for i in range(n):
+            nfa[i] = -fa[i]
+        return
+    for i in range(n):
+        nfa[i] = pad
+    for c in range(d):
+        w = abs(normals[j, c])
+        for i in range(n):
+            nfa[i] += w * half[c, i]  # the radius, widened
+    for i in range(n):
+        r = side * nfa[i]
+        centre = fa[i]
+        fa[i] = centre + r
+        nfa[i] = r - centre
 
 
 @njit(parallel=True, cache=True)
-def _eval_tree(points, normals, offsets, pos, neg, mode, fam, k, scale):
-    """Field at every point; nodes are in post-order (children first, root last)."""
-    n = points.shape[0]
+def _tree_lanes(mid, half, side, pad, normals, offsets, pos, neg, mode, slot, nslots, fam, k, cc):
+    """The tree's field (side 0) at points ``mid`` (d, N), or the lower (side -1) / upper (+1)
+    end of its interval over the boxes mid +- half, node by node over blocks of LANES points:
+    each node is a few loops over a block's rows that LLVM vectorises (AVX), where a point-by-
+    point walk of the tree spends ~15 ns per node and point (elephant, r0: 5x to 20x faster).
+    Nodes are in post-order (children first, root last)."""
+    d, n = mid.shape
     out = np.empty(n)
-    chunk = 256
-    nchunks = (n + chunk - 1) // chunk
-    for c in prange(nchunks):
-        vals = np.empty(normals.shape[0])
-        for i in range(c * chunk, min(n, (c + 1) * chunk)):
-            out[i] = _eval_point(points[i], normals, offsets, pos, neg, mode, fam, k, scale, vals)
+    m = normals.shape[0]
+    for blk in prange((n + LANES - 1) // LANES):
+        s0 = blk * LANES
+        cnt = min(n, s0 + LANES) - s0
+        regs = np.empty((nslots, LANES))
+        fa = np.empty(LANES)
+        nfa = np.empty(LANES)
+        t1 = np.empty(LANES)
+        t2 = np.empty(LANES)
+        bm = np.ascontiguousarray(mid[:, s0:s0 + cnt])
+        bh = np.ascontiguousarray(half[:, s0:s0 + cnt])
+        for j in range(m):
+            _plane_rows(j, normals, offsets, bm, bh, cnt, side, pad, fa, nfa)
+            fb = regs[slot[pos[j]]] if pos[j] >= 0 else t2
+            fc = regs[slot[neg[j]]] if neg[j] >= 0 else t2
+            r = regs[slot[j]]
+            _node_rows(mode[j], fa, nfa, fb, fc, r, t1, t2, cnt, fam, k, cc)
+            if side != 0:  # rounding of every node (the widening of the old interval walk)
+                for i in range(cnt):
+                    r[i] += side * pad
+        out[s0:s0 + cnt] = regs[slot[m - 1], :cnt]
     return out
 
 
-@njit(cache=True)
-def _box_node(mode, alo, ahi, blo, bhi, clo, chi, fam, k, c):
-    """Interval of one node: every R-function (and the magnitude control) is nondecreasing in
-    each argument."""
-    lo = _node_value(mode, alo, blo, clo, fam, k, c)
-    hi = _node_value(mode, ahi, bhi, chi, fam, k, c)
-    if mode == 3:  # -fa occurs too: (fa v fc) ^ fb with fa, and (-fa ^ fc) with -fa
-        lo = r_or(r_and(r_or(alo, clo, fam, k, c), blo, fam, k, c), r_and(-ahi, clo, fam, k, c), fam, k, c)
-        hi = r_or(r_and(r_or(ahi, chi, fam, k, c), bhi, fam, k, c), r_and(-alo, chi, fam, k, c), fam, k, c)
-    elif mode == 5:
-        lo = r_and(r_or(-ahi, blo, fam, k, c), clo, fam, k, c)
-        hi = r_and(r_or(-alo, bhi, fam, k, c), chi, fam, k, c)
-    return lo, hi
-
-
-@njit(parallel=True, cache=True)
-def _bound_tree(lo, hi, normals, offsets, pos, neg, mode, fam, k, scale, pad):
-    """Rigorous enclosure of the field over each box [lo_i, hi_i]."""
-    nb = lo.shape[0]
-    m = normals.shape[0]
-    d = normals.shape[1]
-    flo = np.empty(nb)
-    fhi = np.empty(nb)
-    for i in prange(nb):
-        vlo = np.empty(m)
-        vhi = np.empty(m)
-        for j in range(m):
-            centre = offsets[j]
-            rad = 0.0
-            for c in range(d):
-                centre += normals[j, c] * 0.5 * (lo[i, c] + hi[i, c])
-                rad += abs(normals[j, c]) * 0.5 * (hi[i, c] - lo[i, c])
-            alo = centre - rad - pad
-            ahi = centre + rad + pad
-            blo = vlo[pos[j]] if pos[j] >= 0 else 0.0
-            bhi = vhi[pos[j]] if pos[j] >= 0 else 0.0
-            clo = vlo[neg[j]] if neg[j] >= 0 else 0.0
-            chi = vhi[neg[j]] if neg[j] >= 0 else 0.0
-            a, b = _box_node(mode[j], alo, ahi, blo, bhi, clo, chi, fam, k, scale)
-            vlo[j] = a - pad
-            vhi[j] = b + pad
-        flo[i] = vlo[m - 1]
-        fhi[i] = vhi[m - 1]
-    return flo, fhi
+def evaluate_tree(tree, points: np.ndarray, rfunc: str, cc: float = np.inf, slots=None) -> np.ndarray:
+    """The field of ``tree`` at points (N, d), every node at every point (no short-circuit),
+    with R-functions ``rfunc`` and the magnitude control ``cc``."""
+    slot, nslots = tree_slots(tree.pos, tree.neg) if slots is None else slots
+    mid = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, tree.normals.shape[1]).T)
+    return _tree_lanes(mid, mid, 0, 0.0, tree.normals, tree.offsets, tree.pos, tree.neg, tree.mode, slot, nslots,
+                       FAMILY_CODE[rfunc], SARDF_K, cc)
 
 
 # --------------------------------------------------------------------------- planar polygons
@@ -915,7 +952,11 @@ class BSPField:
 
     def _args(self):
         t = self.tree
-        return t.normals, t.offsets, t.pos, t.neg, t.mode, FAMILY_CODE[self.rfunc], SARDF_K, self.magnitude_scale
+        if getattr(self, "_slots", None) is None:
+            self._slots = tree_slots(t.pos, t.neg)
+        slot, nslots = self._slots
+        return (t.normals, t.offsets, t.pos, t.neg, t.mode, slot, nslots, FAMILY_CODE[self.rfunc], SARDF_K,
+                self.magnitude_scale)
 
     @property
     def magnitude_scale(self) -> float:
@@ -925,21 +966,25 @@ class BSPField:
 
     def evaluate(self, points: np.ndarray) -> np.ndarray:
         """Field values (N,) at points (N, d)."""
-        p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, self.dim))
+        p = np.asarray(points, dtype=np.float64).reshape(-1, self.dim)
         if self._short_circuit:  # exact: the same values to the bit (pipeline.mesh.bsp_minmax)
             t = self.minmax_tree
-            return bsp_minmax.eval_points(p, t.normals, t.offsets, t.pos, t.neg, t.mode, t.depth)
-        return _eval_tree(p, *self._args())
+            return bsp_minmax.eval_points(np.ascontiguousarray(p), t.normals, t.offsets, t.pos, t.neg, t.mode,
+                                          t.depth)
+        return evaluate_tree(self.tree, p, self.rfunc, self.magnitude_scale, self._args()[5:7])
 
     def bound(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rigorous (flo, fhi) over boxes [lo_i, hi_i] (B, d): the field on box i lies in it."""
-        lo = np.ascontiguousarray(np.asarray(lo, dtype=np.float64).reshape(-1, self.dim))
-        hi = np.ascontiguousarray(np.asarray(hi, dtype=np.float64).reshape(-1, self.dim))
+        lo = np.asarray(lo, dtype=np.float64).reshape(-1, self.dim)
+        hi = np.asarray(hi, dtype=np.float64).reshape(-1, self.dim)
+        pad = 1e-14 * self.scale
         if self._short_circuit:
             t = self.minmax_tree
-            return bsp_minmax.bound_boxes(lo, hi, t.normals, t.offsets, t.pos, t.neg, t.mode, 1e-14 * self.scale,
-                                          t.depth)
-        return _bound_tree(lo, hi, *self._args(), 1e-14 * self.scale)
+            return bsp_minmax.bound_boxes(np.ascontiguousarray(lo), np.ascontiguousarray(hi), t.normals, t.offsets,
+                                          t.pos, t.neg, t.mode, pad, t.depth)
+        mid = np.ascontiguousarray((0.5 * (lo + hi)).T)
+        half = np.ascontiguousarray((0.5 * (hi - lo)).T)
+        return _tree_lanes(mid, half, -1, pad, *self._args()), _tree_lanes(mid, half, 1, pad, *self._args())
 
     @property
     def _short_circuit(self) -> bool:

@@ -19,6 +19,7 @@ from pipeline.voxel.voxelise import (
     block_for,
     bricks_for,
     estimate_band_bytes,
+    exact_in_reach,
     merge_samples,
     root_size_for,
     sample_blocks,
@@ -44,7 +45,8 @@ def run(ctx, p: Params) -> dict:
     if job.bricks:
         root = root_size_for(dom.dims, block)
         tasks = [(lo, hi, root, p.band, block) for lo, hi in bricks_for(imin, imax, job.bricks, block)]
-        res = assemble(merge_samples(ctx.map_with(sample_brick, tasks)), imin, imax, h, p.band)
+        refine = exact_in_reach(job.model, h, job.t)  # bricks sample the sign proxy, if it has one
+        res = assemble(merge_samples(ctx.map_with(sample_brick, tasks)), imin, imax, h, p.band, refine)
     else:
         res = voxelise(job.model, imin, imax, h, p.band, block, job.t, progress=ctx.progress)
     grid = frep_to_vdb(res.blocks, res.inside_boxes, "frep", outside_boxes=res.outside_boxes, domain=(imin, imax))
@@ -80,7 +82,7 @@ def sample_brick(job, task):
     """Worker side of a bricked voxelise: sample the blocks of one brick of ``job``."""
     lo, hi, root, band, block = task
     dom = job.domain
-    s = sample_blocks(job.model, dom.index_min, dom.index_max, dom.voxel_size, band, block, job.t,
+    s = sample_blocks(job.model.sign_proxy(), dom.index_min, dom.index_max, dom.voxel_size, band, block, job.t,
                       root_size=root, clip=(lo, hi))
     s.values = s.values.astype("float32")  # halves the transfer; the grid stores float32 anyway
     return s

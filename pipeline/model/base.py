@@ -11,6 +11,7 @@ Sign convention (SPEC): f > 0 inside, f = 0 on the boundary, f < 0 outside.
 
 from __future__ import annotations
 
+import copy
 import math
 from abc import ABC, abstractmethod
 from typing import Annotated, Any, ClassVar
@@ -72,6 +73,9 @@ class Node(ABC):
     #: an oracle: the node samples a mesh, a grid or a solved field (pipeline.oracles) instead
     #: of a formula the tape records, and its voxels cost more to evaluate
     oracle: ClassVar[bool] = False
+    #: the node's sign is a function of its children's signs alone (coordinate maps, positive
+    #: factors, R-functions, complement): :meth:`sign_proxy` may replace its children
+    sign_from_children: ClassVar[bool] = False
 
     def __init__(self, params: Params, where: str = ""):
         self.params = params
@@ -119,6 +123,37 @@ class Node(ABC):
         flo = np.where(np.isnan(flo), -np.inf, flo)
         fhi = np.where(np.isnan(fhi), np.inf, fhi)
         return flo, fhi
+
+    # --- the sign alone -------------------------------------------------------------------
+    def sign_proxy(self) -> Node:
+        """A model with this one's sign at every point that is cheaper to evaluate and to bound,
+        or ``self``. R-functions have the sign of min/max (bsp-fields section 2), so a mesh's
+        r0 / sardf BSP-field has the sign of its min_max field, whose kernels prune the tree per
+        cell; a node whose sign follows from its children's signs (``sign_from_children``) is
+        the same node over their proxies, with min_max set operations. The voxeliser finds the
+        band's sign changes with the proxy and evaluates the model only where the band's
+        distance test reads values (pipeline.voxel.voxelise.voxelise)."""
+        if not self.sign_from_children:
+            return self
+        update: dict[str, Any] = {}
+        for name in self.child_fields:
+            v = getattr(self.params, name)
+            olds = list(v) if isinstance(v, (list, tuple)) else [v]
+            kids = [c.sign_proxy() for c in olds]
+            if any(k is not c for k, c in zip(kids, olds, strict=True)):
+                update[name] = kids if isinstance(v, (list, tuple)) else kids[0]
+        if not update:
+            return self
+        if "rfunc" in type(self.params).model_fields:
+            update["rfunc"] = "min_max"
+        return self.with_params(**update)
+
+    def with_params(self, **update: Any) -> Node:
+        """A copy of this node with some parameters replaced (no re-validation, no cached tapes)."""
+        clone = copy.copy(self)
+        clone.__dict__.pop("_tapes", None)
+        clone.params = self.params.model_copy(update=update)
+        return clone
 
     # --- tree helpers ---------------------------------------------------------------------
     def children(self) -> list[Node]:

@@ -44,6 +44,7 @@ def balanced(op: Callable[[Any, Any], Any], items: list) -> Any:
 class _SetOp(Node):
     Params = _SetParams
     child_fields = ("of",)
+    sign_from_children = True
     list_field = "of"
     uses_domain = True  # the job's domain sets the magnitude control of r0 / sardf
 
@@ -93,6 +94,7 @@ class Complement(Node):
         of: Any
 
     child_fields = ("of",)
+    sign_from_children = True
 
     def field(self, x, y, z, t):
         return -self.params.of.field(x, y, z, t)

@@ -26,6 +26,7 @@ class Translate(Node):
         of: Any
 
     child_fields = ("of",)
+    sign_from_children = True
 
     def field(self, x, y, z, t):
         b = self.params.by
@@ -50,6 +51,7 @@ class Rotate(Node):
             return v
 
     child_fields = ("of",)
+    sign_from_children = True
 
     def __init__(self, params, where=""):
         super().__init__(params, where)
@@ -87,6 +89,7 @@ class Scale(Node):
             return v
 
     child_fields = ("of",)
+    sign_from_children = True
 
     def field(self, x, y, z, t):
         p = self.params
@@ -108,6 +111,7 @@ class Twist(Node):
         of: Any
 
     child_fields = ("of",)
+    sign_from_children = True
 
     def field(self, x, y, z, t):
         p = self.params
@@ -140,6 +144,7 @@ class Taper(Node):
             return self
 
     child_fields = ("of",)
+    sign_from_children = True
 
     def field(self, x, y, z, t):
         p = self.params
@@ -165,6 +170,7 @@ class Bend(Node):
         of: Any = Field()
 
     child_fields = ("of",)
+    sign_from_children = True
 
     def field(self, x, y, z, t):
         p = self.params

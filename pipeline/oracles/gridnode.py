@@ -13,6 +13,7 @@ from scipy import ndimage
 from pipeline.field.affine import AffineForm
 from pipeline.io.vdbio import read_dense
 from pipeline.model.base import Node, Params, register
+from pipeline.model.tape import NotTraceable, Sym
 from pipeline.util.jit import njit
 
 MAX_DENSE = 512**3  # voxels of the active bounding box we are prepared to hold densely
@@ -53,6 +54,8 @@ class GridNode(Node):
     def field(self, x, y, z, t):
         if isinstance(x, AffineForm):
             return self._bound_form(x, y, z)
+        if any(isinstance(v, Sym) for v in (x, y, z)):  # sampled by its own kernels, not the tape
+            raise NotTraceable("grid nodes are evaluated by interpolation")
         shape = np.broadcast(x, y, z).shape
         pts = np.stack([np.broadcast_to(v, shape).ravel() for v in (x, y, z)], axis=1)
         u = self._to_index(pts)

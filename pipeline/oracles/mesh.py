@@ -112,6 +112,16 @@ class Mesh(Node):
         traced = next(v for v in (x, y, z) if isinstance(v, Sym))
         return traced.tb.bsp_field(x, y, z, self.impl.minmax_tree)
 
+    def sign_proxy(self) -> Node:
+        """The min_max BSP-field of the same tree for r0 and sardf: the same sign at every point
+        (an R-function's sign is min/max's), evaluated with the short-circuit kernels that skip
+        the subtrees a cell's bounds exclude, where r0 and sardf depend on every node."""
+        if self.params.method != "bsp" or self.params.rfunc == "min_max":
+            return self
+        twin = self.with_params(rfunc="min_max")
+        twin.impl = self.impl.with_rfunc("min_max")
+        return twin
+
     def describe(self) -> dict:
         """Manifest entry: the mesh checks and the BSP-tree counts (Table 1 of bsp-fields)."""
         r = self.report

@@ -57,6 +57,20 @@ def mark_band(grid: BlockGrid, known: np.ndarray, band: float) -> int:
     neighbours across leaves. Returns how many voxels only the sign test made active."""
     if len(grid.origins) == 0:
         return 0
+    nbr, sign, reach = _reach_rows(grid, known, band)
+    return int(_band_test(grid.values, reach, sign, nbr, float(band), grid.active))
+
+
+def reach_bits(grid: BlockGrid, known: np.ndarray, band: float) -> np.ndarray:
+    """(L, 8, 8) uint8 bit rows (bit z) of the known voxels whose values :func:`mark_band` reads:
+    S and its reach. Every other voxel of the leaves counts by its sign alone."""
+    if len(grid.origins) == 0:
+        return np.zeros((0, LEAF, LEAF), np.uint8)
+    return _reach_rows(grid, known, band)[2]
+
+
+def _reach_rows(grid: BlockGrid, known: np.ndarray, band: float):
+    """(face neighbours, S, S's reach among the known voxels) as bit rows."""
     nbr = block_neighbours(grid)  # -x, +x, -y, +y, -z, +z
     pos, kn, zero = _row_bits(grid.values, known)
     sign = _sign_changes(pos, kn, zero, nbr)
@@ -67,7 +81,7 @@ def mark_band(grid: BlockGrid, known: np.ndarray, band: float) -> int:
         for axis in range(3):
             near = _dilate_axis(near, nbr, axis, step)
         reach -= step
-    return int(_band_test(grid.values, near & kn, sign, nbr, float(band), grid.active))
+    return nbr, sign, near & kn
 
 
 @njit(cache=True, parallel=True)

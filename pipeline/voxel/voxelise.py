@@ -51,7 +51,7 @@ from pipeline.model.tape import (
 from pipeline.sparse.blockwrite import mapped_empty
 from pipeline.sparse.grid import LEAF, LEAF_LOG2, BlockGrid, pack_keys
 from pipeline.util.jit import njit
-from pipeline.voxel.band import cull_pad_voxels, mark_band
+from pipeline.voxel.band import cull_pad_voxels, mark_band, reach_bits
 
 BOUND_CHUNK = 200_000  # boxes per affine call at most (memory ~ 100 bytes x ops x boxes)
 EVAL_CHUNK = 1 << 20  # points per evaluation call at most
@@ -358,9 +358,11 @@ def merge_samples(parts: list[BlockSamples]) -> BlockSamples:
     return BlockSamples(*cat, [lv for p in parts for lv in p.inside], stats, [lv for p in parts for lv in p.outside])
 
 
-def assemble(s: BlockSamples, imin: np.ndarray, imax: np.ndarray, h: float, band: float) -> Voxelised:
+def assemble(s: BlockSamples, imin: np.ndarray, imax: np.ndarray, h: float, band: float,
+             refine: Refine | None = None) -> Voxelised:
     """Leaves, inside boxes and statistics from the evaluated blocks; the band is closed
-    (:func:`mark_band`) and every value is finite (clamped to +-FINITE_LIMIT, counted)."""
+    (:func:`mark_band`) and every value is finite (clamped to +-FINITE_LIMIT, counted).
+    ``refine``: the blocks hold a sign proxy's values (:func:`exact_in_reach`)."""
     block = s.values.shape[1] if len(s.values) else 4
     vals = s.values
     clamped = _count_beyond(vals, s.valid, FINITE_LIMIT)
@@ -369,12 +371,16 @@ def assemble(s: BlockSamples, imin: np.ndarray, imax: np.ndarray, h: float, band
     grid, known = _assemble_leaves(s.blocks, block, vals, s.valid, s.inside, h, 1.0)
     stats = dict(s.stats)
     stats.update({"block": int(block), "blocks_evaluated": int(len(s.blocks)), "voxels_evaluated": int(s.valid.sum())})
-    return _finish(grid, known, s.inside, s.outside, stats, clamped, imin, imax, h, band)
+    return _finish(grid, known, s.inside, s.outside, stats, clamped, imin, imax, h, band, refine)
 
 
 def _finish(grid: BlockGrid, known: np.ndarray, inside: list, outside: list, stats: dict, clamped: int,
-            imin: np.ndarray, imax: np.ndarray, h: float, band: float) -> Voxelised:
+            imin: np.ndarray, imax: np.ndarray, h: float, band: float, refine: Refine | None = None) -> Voxelised:
     """The leaves' band marked, background and proxies set, the proven boxes and the statistics."""
+    if refine is not None:
+        more, extra = refine(grid, known, band)
+        stats.update(more)
+        clamped += extra
     added = mark_band(grid, known, band)
     # from the float32 values the grid stores, so bricked (float32 transfer) and unsplit runs agree
     bg = _background(grid.values, grid.active, band, h)
@@ -394,7 +400,8 @@ def _finish(grid: BlockGrid, known: np.ndarray, inside: list, outside: list, sta
 
 
 def voxelise_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: float, band: float = 3.0, block: int = 4,
-                  progress: Callable[[str], None] | None = None, t0: float | None = None) -> Voxelised:
+                  progress: Callable[[str], None] | None = None, t0: float | None = None,
+                  refine: Refine | None = None) -> Voxelised:
     """:func:`assemble` of :func:`sample_blocks` for a model that lowers to a tape, without the
     blocks' arrays: the blocks are evaluated and written into their leaves by one
     compiled pass over the leaves (tape.eval_leaves; at 1024^3 the demo's blocks held 0.4 GB
@@ -437,7 +444,7 @@ def voxelise_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: float, band
         progress(f"evaluated {len(blocks)} blocks")
     stats = dict(levels.stats)
     stats.update({"block": int(block), "blocks_evaluated": int(len(blocks)), "voxels_evaluated": int(nvalid)})
-    return _finish(grid, known, levels.inside, levels.outside, stats, clamped, imin, imax, h, band)
+    return _finish(grid, known, levels.inside, levels.outside, stats, clamped, imin, imax, h, band, refine)
 
 
 def _outside_leaves(grid: BlockGrid, boxes: np.ndarray) -> np.ndarray:
@@ -485,7 +492,71 @@ def voxelise(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: fl
     tape = compile_model(model, t) if USE_TAPE else None
     if tape is not None:
         return voxelise_tape(tape, imin, imax, h, band, block, progress, t0)
-    return assemble(sample_blocks(model, imin, imax, h, band, block, t, progress), imin, imax, h, band)
+    refine = exact_in_reach(model, h, t)
+    if refine is not None:  # the blocks from the sign proxy, the model's values in the reach
+        model = model.sign_proxy()
+        tape = compile_model(model, t) if USE_TAPE else None
+        if tape is not None:
+            return voxelise_tape(tape, imin, imax, h, band, block, progress, t0, refine)
+    return assemble(sample_blocks(model, imin, imax, h, band, block, t, progress), imin, imax, h, band, refine)
+
+
+Refine = Callable[[BlockGrid, np.ndarray, float], tuple[dict, int]]
+
+
+def exact_in_reach(model: Node, h: float, t: float) -> Refine | None:
+    """For a model with a cheaper sign proxy (:meth:`pipeline.model.base.Node.sign_proxy`: an r0
+    or sardf mesh, whose every voxel walks the whole BSP-tree): the step that puts the model's
+    own values where the band reads them. The blocks are enumerated and evaluated with the
+    proxy, which has the same sign, so S (the sign changes) and its reach are the model's; only
+    the voxels of the reach are evaluated with the model (about a third of the blocks' voxels
+    at a band of 3). None when the model is its own proxy."""
+    if model.sign_proxy() is model:
+        return None
+    return partial(_evaluate_reach, model, float(h), float(t))
+
+
+def _evaluate_reach(model: Node, h: float, t: float, grid: BlockGrid, known: np.ndarray,
+                    band: float) -> tuple[dict, int]:
+    """The model's values at the voxels of S's reach, again until the reach of the stored signs
+    holds no proxy value (a sign the proxy and the model round differently, at a value within
+    rounding of 0, can move S by a voxel). Returns statistics and the count of clamped values."""
+    t0 = time.perf_counter()
+    exact = np.zeros((len(grid.origins), LEAF, LEAF), np.uint8)
+    per = chunk_for(model, 3 * 8, EVAL_CHUNK)
+    count = rounds = clamped = 0
+    while True:
+        need = reach_bits(grid, known, band) & ~exact
+        if not need.any():
+            break
+        rounds += 1
+        exact |= need
+        for lo in range(0, len(need), LEAVES_PER_PASS):  # bounds the unpacked masks' memory
+            idx = lo * LEAF ** 3 + np.flatnonzero(np.unpackbits(need[lo:lo + LEAVES_PER_PASS].reshape(-1),
+                                                               bitorder="little"))
+            for s in range(0, len(idx), per):
+                clamped += _evaluate_voxels(model, grid, idx[s:s + per], h, t)
+            count += len(idx)
+    return {"sign_proxy": True, "exact_voxels": count, "exact_rounds": rounds,
+            "exact_seconds": round(time.perf_counter() - t0, 4)}, clamped
+
+
+LEAVES_PER_PASS = 1 << 16  # leaves whose reach is unpacked at once (32 MiB of flags)
+
+
+def _evaluate_voxels(model: Node, grid: BlockGrid, idx: np.ndarray, h: float, t: float) -> int:
+    """The model at voxels of the leaves (flat indices into their values), clamped to
+    +-FINITE_LIMIT and stored; returns how many were clamped."""
+    at = np.unravel_index(idx, grid.values.shape)
+    x, y, z = ((grid.origins[at[0], a] + at[1 + a]) * h for a in range(3))  # voxel centres, as evaluate_blocks
+    v = np.array(model.evaluate_xyz(x, y, z, t), dtype=np.float64)
+    bad = ~np.isfinite(v)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise NonFiniteField(np.array([x[i], y[i], z[i]]))
+    big = int(np.count_nonzero(np.abs(v) > FINITE_LIMIT))
+    grid.values[at] = np.clip(v, -FINITE_LIMIT, FINITE_LIMIT) if big else v
+    return big
 
 
 def bricks_for(imin: np.ndarray, imax: np.ndarray, brick: int, block: int) -> list[tuple[np.ndarray, np.ndarray]]:

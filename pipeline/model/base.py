@@ -86,6 +86,7 @@ class Node(ABC):
         # workers (a mesh's tape holds its whole BSP-tree again); a worker traces its own
         state = self.__dict__.copy()
         state.pop("_tapes", None)
+        state.pop("_sign_proxy", None)  # made again where needed (it shares the mesh's arrays)
         return state
 
     # --- the one formula ------------------------------------------------------------------
@@ -132,7 +133,15 @@ class Node(ABC):
         cell; a node whose sign follows from its children's signs (``sign_from_children``) is
         the same node over their proxies, with min_max set operations. The voxeliser finds the
         band's sign changes with the proxy and evaluates the model only where the band's
-        distance test reads values (pipeline.voxel.voxelise.voxelise)."""
+        distance test reads values (pipeline.voxel.voxelise.voxelise); components and
+        collisions depend on the sign alone and use it throughout. Made once per node (so its
+        tape is traced once)."""
+        proxy = self.__dict__.get("_sign_proxy")
+        if proxy is None:
+            proxy = self.__dict__["_sign_proxy"] = self._make_sign_proxy()
+        return proxy
+
+    def _make_sign_proxy(self) -> Node:
         if not self.sign_from_children:
             return self
         update: dict[str, Any] = {}
@@ -152,6 +161,7 @@ class Node(ABC):
         """A copy of this node with some parameters replaced (no re-validation, no cached tapes)."""
         clone = copy.copy(self)
         clone.__dict__.pop("_tapes", None)
+        clone.__dict__.pop("_sign_proxy", None)
         clone.params = self.params.model_copy(update=update)
         return clone
 

@@ -112,7 +112,7 @@ class Mesh(Node):
         traced = next(v for v in (x, y, z) if isinstance(v, Sym))
         return traced.tb.bsp_field(x, y, z, self.impl.minmax_tree)
 
-    def sign_proxy(self) -> Node:
+    def _make_sign_proxy(self) -> Node:
         """The min_max BSP-field of the same tree for r0 and sardf: the same sign at every point
         (an R-function's sign is min/max's), evaluated with the short-circuit kernels that skip
         the subtrees a cell's bounds exclude, where r0 and sardf depend on every node."""

@@ -130,9 +130,9 @@ class BrickCells:
 
 def label_brick(model, task: BrickTask) -> BrickCells:
     """Algorithm 1 on the cells meeting the brick, then the section 4.2 propagation over the
-    owned cells and the ghosts (module docstring)."""
+    owned cells and the ghosts (module docstring). On the model's sign proxy, as cc.detect."""
     t0 = time.perf_counter()
-    tree, escaped = cc.enumerate_in_brick(model, task.origin, task.size, task.depth, task.t, task.region,
+    tree, escaped = cc.enumerate_in_brick(model.sign_proxy(), task.origin, task.size, task.depth, task.t, task.region,
                                           task.continuation, (task.lo, task.hi))
     raw, count = cc.mark_union(tree)
     low = tree.coords << (task.depth - tree.level)[:, None]
@@ -158,7 +158,7 @@ def detect_bricked(model, origin, size: float, depth: int, brick_cells: int, t: 
     tasks = [BrickTask(t, origin, float(size), depth, region, continuation, lo, hi)
              for lo, hi in bricks_of(depth, cuts)]
     parts = (run_map or (lambda fn, xs: [fn(model, x) for x in xs]))(label_brick, tasks)
-    return unify(parts, cuts, model, origin, size, depth, t, region)
+    return unify(parts, cuts, model.sign_proxy(), origin, size, depth, t, region)
 
 
 def unify(parts: list[BrickCells], cuts: list[np.ndarray], model, origin, size: float, depth: int,

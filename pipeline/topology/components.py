@@ -1117,8 +1117,11 @@ def _first_keys(coords, level, depth, raw, count):
 
 def detect(model: Node, origin, size: float, depth: int, t: float = 0.0,
            region=None, continuation: bool = True) -> Components:
-    """Algorithm 1 then section 4.2: the components of {f > 0} at tolerance size / 2**depth."""
-    return label_cells(enumerate_octree(model, origin, size, depth, t, region, continuation))
+    """Algorithm 1 then section 4.2: the components of {f > 0} at tolerance size / 2**depth.
+    They depend on the sign of f alone, so the model's sign proxy (Node.sign_proxy: an r0 mesh's
+    min_max twin) is enumerated: the same cells where interval bounds decide (an R-function's
+    interval has min/max's signs), with the pruned tape instead of every BSP node per cell."""
+    return label_cells(enumerate_octree(model.sign_proxy(), origin, size, depth, t, region, continuation))
 
 
 # --- Algorithm 2: coarsest level with the same count --------------------------------------------------

@@ -60,8 +60,9 @@ class Mesh(Node):
             if params.rfunc != "min_max" and nodes > SLOW_TREE:
                 self.warnings.append(
                     f"{params.path}: rfunc {params.rfunc} evaluates all {nodes:,} nodes of the BSP-tree at every "
-                    "voxel (minutes to hours at 256^3 for a tree this size); rfunc: min_max has the same zero set "
-                    "and sign and evaluates only the nodes near each voxel (docs/performance.md)")
+                    "voxel near the surface (about 1 ns per node and voxel: seconds to minutes at 256^3); "
+                    "rfunc: min_max has the same zero set and sign and evaluates only the nodes near each voxel "
+                    "(docs/performance.md)")
         else:
             try:
                 self.impl = ADFField.from_mesh(mesh, join=params.join, p=params.p)

@@ -16,6 +16,16 @@ need_apt=()
 # GNU OpenMP: Numba's threading layer of choice (pipeline/__init__.py; TBB's slows down with use)
 libs=$(/sbin/ldconfig -p 2>/dev/null || ldconfig -p 2>/dev/null || true)
 [[ "$libs" == *"libgomp.so.1 "* ]] || need_apt+=(libgomp1)
+# the compiled leaf builder (setup.py, pipeline/io/leafbuild.cpp) links the system's OpenVDB and
+# boost.python, the ones python3-openvdb uses: their headers and a C++ compiler
+# (wanted, not needed: without apt-get the install goes on and copyFromArray writes the grids)
+want_apt=()
+[ -f /usr/include/openvdb/openvdb.h ] || want_apt+=(libopenvdb-dev)
+[ -f /usr/include/boost/python.hpp ] || want_apt+=(libboost-python-dev)
+command -v g++ >/dev/null 2>&1 || want_apt+=(g++)
+if [ ${#want_apt[@]} -gt 0 ] && command -v apt-get >/dev/null 2>&1; then
+  need_apt+=("${want_apt[@]}")
+fi
 if [ ${#need_apt[@]} -gt 0 ]; then
   if ! command -v apt-get >/dev/null 2>&1; then
     cat >&2 <<MSG
@@ -51,7 +61,10 @@ if [ ! -x .venv/bin/python ]; then
 fi
 
 stamp=.venv/.frepvdb-installed
-if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+built=(pipeline/io/_leafbuild*.so)
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ setup.py -nt "$stamp" ] \
+   || [ pipeline/io/leafbuild.cpp -nt "$stamp" ] \
+   || { [ ! -e "${built[0]}" ] && [ -f /usr/include/openvdb/openvdb.h ]; }; then
   echo "setup: pip install -e .[dev] ($NUMPY_PIN, the major version of the system's NumPy $SYS_NUMPY)"
   .venv/bin/python -m pip install --quiet --upgrade pip
   .venv/bin/python -m pip install --quiet -e '.[dev]' "$NUMPY_PIN"
@@ -72,3 +85,5 @@ try:
 except ImportError:
     import pyopenvdb as vdb
 " || { echo "setup: the environment does not import (see above)" >&2; exit 1; }
+.venv/bin/python -c "from pipeline.io import _leafbuild" 2>/dev/null || echo "setup: warning: the compiled leaf \
+builder (pipeline/io/leafbuild.cpp) was not built; grids are written with pyopenvdb's copyFromArray (slower)" >&2

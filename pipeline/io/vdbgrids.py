@@ -13,6 +13,7 @@ world position (i, j, k) * voxel_size (OpenVDB's plain linear transform).
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable
 
 import numpy as np
@@ -21,6 +22,13 @@ from numba import prange
 from pipeline.sparse.blockwrite import LeafSource
 from pipeline.sparse.grid import LEAF, LEAF_LOG2, BlockGrid, coalesce_boxes, leaf_has_active, pack_keys
 from pipeline.util.jit import njit
+
+try:  # the compiled leaf builder, built by the package's build where OpenVDB's headers are (setup.py)
+    from pipeline.io import _leafbuild  # type: ignore[attr-defined]
+except ImportError:  # pragma: no cover - copyFromArray then, as before
+    _leafbuild = None
+if os.environ.get("FREPVDB_COPY_FROM_ARRAY") == "1":  # the old path, for comparisons (bench/leaves.py)
+    _leafbuild = None
 
 try:  # OpenVDB >= 11 names the module openvdb
     import openvdb as vdb  # type: ignore[import-not-found]
@@ -49,6 +57,9 @@ def write_batched(grid, origins: np.ndarray, fill: Callable[[int, int, np.ndarra
     o = np.asarray(origins, np.int64).reshape(-1, 3)
     if len(o) == 0:
         return
+    if _leafbuild is not None and isinstance(grid, vdb.FloatGrid):
+        _add_batched(grid, o, fill, scale, batch, source, done)
+        return
     bg = np.float32(grid.background)
     k = np.float32(scale)
     brk = np.ones(len(o), bool)  # a run starts where x, y change or z is not the next leaf
@@ -76,6 +87,31 @@ def write_batched(grid, origins: np.ndarray, fill: Callable[[int, int, np.ndarra
             grid.copyFromArray(arr, (int(o[lo + s, 0]), int(o[lo + s, 1]), int(o[lo + s, 2])))
         if done is not None:
             done(hi)
+
+
+def _add_batched(grid, o: np.ndarray, fill, scale: float, batch: int | None, source, done) -> None:
+    """:func:`write_batched` through the compiled leaf builder (pipeline/io/leafbuild.cpp): the
+    same voxels, values and tiles as copyFromArray, with the leaves made in parallel and the
+    tiles pruned once at the end instead of after every run of leaves."""
+    size = min(BATCH if batch is None else batch, len(o))
+    if fill is not None:
+        values = np.empty((size, LEAF, LEAF, LEAF), np.float32)
+        active = np.empty((size, LEAF, LEAF, LEAF), bool)
+    for lo in range(0, len(o), size):
+        hi = min(lo + size, len(o))
+        if fill is not None:
+            fill(lo, hi, values[:hi - lo], active[:hi - lo])
+            v, a = values[:hi - lo], active[:hi - lo]
+        else:
+            v, a = source[0][lo:hi], source[1][lo:hi]
+        k = np.float32(scale)
+        if v.dtype != np.float32:  # scaled in the source's precision and rounded once, as _pack_runs does
+            v, k = (v * k).astype(np.float32), np.float32(1.0)
+        _leafbuild.add_blocks(grid, np.ascontiguousarray(o[lo:hi]), np.ascontiguousarray(v),
+                              np.ascontiguousarray(a, dtype=bool), float(k))
+        if done is not None:
+            done(hi)
+    _leafbuild.finish(grid)
 
 
 @njit(cache=True, parallel=True)

@@ -1,0 +1,166 @@
+// pipeline.io._leafbuild: OpenVDB leaves of a FloatGrid made from 8^3 blocks in C++.
+//
+// pyopenvdb's copyFromArray (tools::copyFromDense) is the only bulk write pyopenvdb 10 has. It
+// holds the GIL, plans its blocks from a dense box, and prunes the whole tree's tiles at the end
+// of every call, and pipeline.io.vdbgrids.write_batched calls it once per run of leaves along z
+// (thousands of calls per grid). This module makes the same leaves from the BlockGrid layout
+// directly: the leaves are filled in parallel (TBB, without the GIL) and then added to the tree
+// serially, and the tiles are pruned once (finish). The result is voxel for voxel what
+// copyFromArray makes from the same values: a voxel is active where |v - background| > 0
+// (the tolerance copyFromArray is called with; NaN is not), an inactive voxel holds the
+// background, a block whose 512 voxels are all active with one value becomes an active tile of
+// the leaf's size, a block with no active voxel adds nothing (the grid must not hold a leaf or
+// tile there already: write_batched writes new blocks into an empty region).
+//
+// The grid object comes from pyopenvdb (boost.python, FloatGrid::Ptr holder); this module is
+// built against the same OpenVDB and boost.python (Debian's libopenvdb-dev, libboost-python-dev)
+// by the package's own build (setup.py), so extract<FloatGrid::Ptr> finds pyopenvdb's registration.
+
+#define BOOST_BIND_GLOBAL_PLACEHOLDERS
+#include <Python.h>
+
+#include <boost/python.hpp>
+#include <openvdb/openvdb.h>
+#include <openvdb/tools/Prune.h>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <cmath>
+#include <cstdint>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+namespace py = boost::python;
+using openvdb::Coord;
+using openvdb::FloatGrid;
+using LeafT = FloatGrid::TreeType::LeafNodeType;
+
+namespace {
+
+constexpr Py_ssize_t VOXELS = LeafT::SIZE;  // 512
+
+// A C-contiguous buffer of a NumPy array, released with the object.
+class Buffer {
+public:
+    Buffer(const py::object& obj, const char* what, const char* formats, Py_ssize_t itemsize) {
+        if (PyObject_GetBuffer(obj.ptr(), &view_, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) != 0) {
+            py::throw_error_already_set();
+        }
+        const std::string fmt = view_.format ? view_.format : "B";
+        const char code = fmt.empty() ? 'B' : fmt.back();
+        if (view_.itemsize != itemsize || std::string(formats).find(code) == std::string::npos) {
+            PyBuffer_Release(&view_);
+            throw std::invalid_argument(std::string(what) + ": wrong element type '" + fmt + "'");
+        }
+    }
+    ~Buffer() { PyBuffer_Release(&view_); }
+    Buffer(const Buffer&) = delete;
+    Buffer& operator=(const Buffer&) = delete;
+    template <typename T> const T* data() const { return static_cast<const T*>(view_.buf); }
+    Py_ssize_t count() const { return view_.len / view_.itemsize; }
+
+private:
+    Py_buffer view_{};
+};
+
+// What one block becomes: nothing, a leaf, or an active tile of the leaf's size.
+struct Made {
+    LeafT* leaf = nullptr;
+    float tile = 0.0f;
+    bool is_tile = false;
+};
+
+Made make_block(const float* v, const bool* a, const Coord& origin, float scale, float bg) {
+    Made out;
+    int on = 0;
+    bool same = true;
+    float first = 0.0f;
+    for (Py_ssize_t n = 0; n < VOXELS; ++n) {
+        const float x = v[n] * scale;
+        const bool act = a[n] && std::abs(x - bg) > 0.0f;
+        if (act) {
+            if (on == 0) first = x;
+            else if (x != first) same = false;
+            ++on;
+        }
+    }
+    if (on == 0) return out;
+    if (on == VOXELS && same) {
+        out.is_tile = true;
+        out.tile = first;
+        return out;
+    }
+    auto leaf = std::make_unique<LeafT>(origin, bg, false);
+    for (Py_ssize_t n = 0; n < VOXELS; ++n) {
+        const float x = v[n] * scale;
+        if (a[n] && std::abs(x - bg) > 0.0f) leaf->setValueOn(static_cast<openvdb::Index>(n), x);
+    }
+    out.leaf = leaf.release();
+    return out;
+}
+
+// Add blocks (origins (n, 3) int64; values (n, 8, 8, 8) float32; active (n, 8, 8, 8) bool)
+// times ``scale`` to ``grid``. Returns (leaves added, tiles added).
+py::tuple add_blocks(py::object grid_obj, py::object origins_obj, py::object values_obj,
+                     py::object active_obj, float scale) {
+    FloatGrid::Ptr grid = py::extract<FloatGrid::Ptr>(grid_obj);
+    Buffer origins(origins_obj, "origins", "lq", 8);
+    Buffer values(values_obj, "values", "f", 4);
+    Buffer active(active_obj, "active", "?", 1);
+    const Py_ssize_t n = origins.count() / 3;
+    if (origins.count() != 3 * n || values.count() != n * VOXELS || active.count() != n * VOXELS) {
+        throw std::invalid_argument("add_blocks: origins (n, 3), values and active (n, 8, 8, 8) expected");
+    }
+    const std::int64_t* o = origins.data<std::int64_t>();
+    const float* v = values.data<float>();
+    const bool* a = active.data<bool>();
+    for (Py_ssize_t b = 0; b < n; ++b) {
+        for (int c = 0; c < 3; ++c) {
+            if (o[3 * b + c] % LeafT::DIM != 0) throw std::invalid_argument("add_blocks: origins must be multiples of 8");
+        }
+    }
+    const float bg = grid->background();
+    std::vector<Made> made(static_cast<size_t>(n));
+    Py_BEGIN_ALLOW_THREADS
+    tbb::parallel_for(tbb::blocked_range<Py_ssize_t>(0, n, 64), [&](const tbb::blocked_range<Py_ssize_t>& r) {
+        for (Py_ssize_t b = r.begin(); b < r.end(); ++b) {
+            const Coord origin(static_cast<int>(o[3 * b]), static_cast<int>(o[3 * b + 1]), static_cast<int>(o[3 * b + 2]));
+            made[b] = make_block(v + b * VOXELS, a + b * VOXELS, origin, scale, bg);
+        }
+    });
+    Py_END_ALLOW_THREADS
+    openvdb::tree::ValueAccessor<FloatGrid::TreeType> acc(grid->tree());
+    long leaves = 0, tiles = 0;
+    for (Py_ssize_t b = 0; b < n; ++b) {
+        if (made[b].leaf) {
+            acc.addLeaf(made[b].leaf);  // the tree owns it now
+            ++leaves;
+        } else if (made[b].is_tile) {
+            const Coord origin(static_cast<int>(o[3 * b]), static_cast<int>(o[3 * b + 1]), static_cast<int>(o[3 * b + 2]));
+            acc.addTile(1, origin, made[b].tile, true);
+            ++tiles;
+        }
+    }
+    return py::make_tuple(leaves, tiles);
+}
+
+// Prune the tiles as copyFromArray does after every call (tools::pruneTiles, tolerance 0).
+void finish(py::object grid_obj) {
+    FloatGrid::Ptr grid = py::extract<FloatGrid::Ptr>(grid_obj);
+    Py_BEGIN_ALLOW_THREADS
+    openvdb::tools::pruneTiles(grid->tree(), 0.0f);
+    Py_END_ALLOW_THREADS
+}
+
+void translate(const std::invalid_argument& e) { PyErr_SetString(PyExc_ValueError, e.what()); }
+
+}  // namespace
+
+BOOST_PYTHON_MODULE(_leafbuild) {
+    py::register_exception_translator<std::invalid_argument>(&translate);
+    py::def("add_blocks", &add_blocks, (py::arg("grid"), py::arg("origins"), py::arg("values"), py::arg("active"),
+                                        py::arg("scale") = 1.0f));
+    py::def("finish", &finish, py::arg("grid"));
+}

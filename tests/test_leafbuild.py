@@ -1,0 +1,120 @@
+"""The compiled leaf builder (pipeline/io/leafbuild.cpp) against pyopenvdb's copyFromArray:
+write_batched must make the same grid either way - every value, its activity, the tiles and the
+leaf count - for any blocks, scales, batches and special values (the background, NaN, constant
+blocks), written into empty grids and over grids that already hold leaves and tiles."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from pipeline.io import vdbgrids as vg
+from pipeline.sparse.blockwrite import LeafSource
+from pipeline.sparse.grid import LEAF
+
+vdb = vg.vdb
+HEADERS = Path("/usr/include/openvdb/openvdb.h").exists()
+
+
+def test_the_leaf_builder_is_built_where_openvdb_headers_are():
+    """.ci/setup.sh installs the headers on Debian, so the build must have made the module: a
+    silent fall-back to copyFromArray would cost ~3 s per 1024^3 job unnoticed."""
+    if not HEADERS:
+        pytest.skip("no OpenVDB headers: the package is built without the leaf builder")
+    if os.environ.get("FREPVDB_COPY_FROM_ARRAY") == "1":
+        pytest.skip("FREPVDB_COPY_FROM_ARRAY=1 asks for the old path")
+    assert vg._leafbuild is not None, "pipeline.io._leafbuild was not built: run `make setup` and read its output"
+
+
+def _items(grid) -> list[tuple]:
+    """Every stored value (leaf voxels, tiles, active or not) with its box, NaN as a token."""
+    out = []
+    for it in grid.citerAllValues():
+        v = it.value
+        out.append((tuple(it.min), tuple(it.max), "nan" if isinstance(v, float) and math.isnan(v) else v, it.active))
+    return out
+
+
+@st.composite
+def _blocks(draw):
+    n = draw(st.integers(1, 40))
+    cells = draw(st.lists(st.tuples(*[st.integers(-6, 6)] * 3), min_size=n, max_size=n, unique=True))
+    origins = np.array(sorted(cells), np.int64) * LEAF
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    values = rng.normal(size=(n, LEAF, LEAF, LEAF)).astype(np.float32)
+    active = rng.random((n, LEAF, LEAF, LEAF)) < draw(st.sampled_from([0.0, 0.3, 0.9, 1.0]))
+    bg = draw(st.sampled_from([0.0, 0.25, -3.0]))
+    scale = draw(st.sampled_from([1.0, -1.0, 2.5]))
+    for b in range(n):  # some blocks of each kind a writer can meet
+        kind = rng.integers(0, 6)
+        if kind == 0:
+            active[b] = False
+        elif kind == 1:  # constant and active: an active tile
+            active[b], values[b] = True, np.float32(rng.normal())
+        elif kind == 2:  # the background after scaling: inactive
+            values[b, 0, 0, :4] = np.float32(bg / scale)
+            active[b, 0, 0, :4] = True
+        elif kind == 3:
+            values[b, 1, 2, 3] = np.nan
+            active[b, 1, 2, 3] = True
+        elif kind == 4:  # constant at the background: nothing
+            active[b], values[b] = True, np.float32(bg / scale)
+    dtype = draw(st.sampled_from([np.float32, np.float64]))
+    return origins, values.astype(dtype), active, bg, scale, draw(st.sampled_from([None, 1, 7])), draw(st.booleans())
+
+
+def _write(origins, values, active, bg, scale, batch, prior, compiled: bool, fill: bool):
+    grid = vdb.FloatGrid(bg)
+    if prior:  # leaves and a tile there already, where some blocks go and where none does
+        grid.fill((-8, -8, -8), (23, 7, 7), 1.5, True)
+        grid.copyFromArray(np.full((8, 8, 8), 0.75, np.float32), (0, 8, 0))
+        grid.copyFromArray(np.arange(512, dtype=np.float32).reshape(8, 8, 8), (64, 64, 64))
+    saved = vg._leafbuild
+    vg._leafbuild = saved if compiled else None
+    try:
+        if fill:
+            def fill_rows(lo, hi, v, a):
+                v[:] = values[lo:hi]
+                a[:] = active[lo:hi]
+            vg.write_leaves(grid, LeafSource(1.0, bg, origins, fill=fill_rows), scale=scale, batch=batch)
+        else:
+            vg.write_batched(grid, origins, None, scale, batch, source=(values, active))
+    finally:
+        vg._leafbuild = saved
+    return grid
+
+
+@pytest.mark.skipif(vg._leafbuild is None, reason="the leaf builder is not built here")
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_blocks())
+def test_leaf_builder_makes_copy_from_arrays_grid(case):
+    origins, values, active, bg, scale, batch, prior = case
+    fill = values.dtype == np.float32 and batch == 7  # the LeafSource path takes float32 leaves
+    old = _write(origins, values, active, bg, scale, batch, prior, compiled=False, fill=fill)
+    new = _write(origins, values, active, bg, scale, batch, prior, compiled=True, fill=fill)
+    assert new.activeVoxelCount() == old.activeVoxelCount()
+    assert new.leafCount() == old.leafCount()
+    assert _items(new) == _items(old)
+
+
+@pytest.mark.skipif(vg._leafbuild is None, reason="the leaf builder is not built here")
+def test_leaf_builder_refuses_bad_arrays():
+    grid = vdb.FloatGrid(0.0)
+    values = np.zeros((1, 8, 8, 8), np.float32)
+    active = np.ones((1, 8, 8, 8), bool)
+    with pytest.raises(ValueError, match="multiples of 8"):
+        vg._leafbuild.add_blocks(grid, np.array([[1, 0, 0]], np.int64), values, active, 1.0)
+    with pytest.raises(ValueError, match="element type"):
+        vg._leafbuild.add_blocks(grid, np.zeros((1, 3), np.int64), values.astype(np.float64), active, 1.0)
+    with pytest.raises(ValueError, match="expected"):
+        vg._leafbuild.add_blocks(grid, np.zeros((2, 3), np.int64), values, active, 1.0)
+    with pytest.raises(TypeError):  # not a FloatGrid
+        vg._leafbuild.add_blocks(vdb.Vec3SGrid(), np.zeros((1, 3), np.int64), values, active, 1.0)
+    assert grid.activeVoxelCount() == 0

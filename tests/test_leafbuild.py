@@ -118,3 +118,31 @@ def test_leaf_builder_refuses_bad_arrays():
     with pytest.raises(TypeError):  # not a FloatGrid
         vg._leafbuild.add_blocks(vdb.Vec3SGrid(), np.zeros((1, 3), np.int64), values, active, 1.0)
     assert grid.activeVoxelCount() == 0
+
+
+@pytest.mark.skipif(vg._leafbuild is None, reason="the leaf builder is not built here")
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(*[st.integers(-5, 5)] * 3), min_size=1, max_size=60, unique=True),
+       st.sampled_from([8, 128]), st.integers(0, 2**31 - 1), st.booleans(), st.sampled_from([None, 1.0]))
+def test_tiles_are_those_of_grid_fill(cells, cell, seed, prior, merge):
+    """fill_tiles through add_tiles makes the tiles grid.fill made, over leaves and tiles already
+    there too; values repeat (runs along z of one value were one fill call)."""
+    rng = np.random.default_rng(seed)
+    origins = np.array(cells, np.int64) * cell
+    values = rng.choice(np.array([1.0, 0.5, -2.0], np.float32), size=len(origins))
+    grids = []
+    for compiled in (False, True):
+        grid = vdb.FloatGrid(0.0)
+        if prior:
+            grid.fill((-16, -16, -16), (15, 15, 15), 3.0, True)
+            grid.copyFromArray(np.arange(512, dtype=np.float32).reshape(8, 8, 8), (0, 0, 8 * 3))
+        saved = vg._leafbuild
+        vg._leafbuild = saved if compiled else None
+        try:
+            vg.fill_tiles(grid, origins, values, cell=cell, merge_value=merge)
+        finally:
+            vg._leafbuild = saved
+        grids.append(grid)
+    old, new = grids
+    assert new.activeVoxelCount() == old.activeVoxelCount()
+    assert _items(new) == _items(old)

@@ -363,6 +363,9 @@ def fill_tiles(grid, origins: np.ndarray, values: np.ndarray, cell: int = LEAF,
             o, v = o[~same], v[~same]
             if len(o) == 0:
                 return
+    if _leafbuild is not None and isinstance(grid, vdb.FloatGrid) and cell in (LEAF, 128):
+        _leafbuild.add_tiles(grid, np.ascontiguousarray(o), np.ascontiguousarray(v), cell)  # the same tiles
+        return
     starts, ends = _z_runs(o, v, cell)
     _fill_runs(grid, o, v, starts, ends, cell)
 

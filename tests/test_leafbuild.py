@@ -146,3 +146,69 @@ def test_tiles_are_those_of_grid_fill(cells, cell, seed, prior, merge):
     old, new = grids
     assert new.activeVoxelCount() == old.activeVoxelCount()
     assert _items(new) == _items(old)
+
+
+def _mixed_grid(seed: int, bg: float):
+    """A grid with partial leaves, a tile, an active constant block and the background around."""
+    rng = np.random.default_rng(seed)
+    grid = vdb.FloatGrid(bg)
+    grid.fill((-32, -32, 0), (-17, -1, 15), -0.5, True)  # leaf-sized tiles
+    for _ in range(12):
+        o = rng.integers(-4, 4, 3) * LEAF
+        block = rng.normal(size=(8, 8, 8)).astype(np.float32)
+        block[rng.random((8, 8, 8)) < 0.4] = bg
+        grid.copyFromArray(block, tuple(int(c) for c in o))
+    return grid
+
+
+def _old_path(fn, *args):
+    saved = vg._leafbuild
+    vg._leafbuild = None
+    try:
+        return fn(*args)
+    finally:
+        vg._leafbuild = saved
+
+
+@pytest.mark.skipif(vg._leafbuild is None, reason="the leaf builder is not built here")
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.0, 3.0]), st.integers(0, 3000))
+def test_sample_reads_what_the_chunked_reads_read(seed, bg, n):
+    """sample_values through the compiled sampler: leaf values, tiles and background, at
+    points inside and far outside the grid, repeated points and none."""
+    from pipeline.io.vtkio import sample_values
+
+    grid = _mixed_grid(seed, bg)
+    rng = np.random.default_rng(seed + 1)
+    ijk = np.concatenate([rng.integers(-40, 40, (n, 3)), rng.integers(-10**6, 10**6, (n // 10, 3))])
+    ijk = np.concatenate([ijk, ijk[: n // 5]])
+    new = sample_values(grid, ijk)
+    old = _old_path(sample_values, grid, ijk)
+    assert new.dtype == old.dtype == np.float32
+    assert np.array_equal(new, old)
+
+
+@pytest.mark.skipif(vg._leafbuild is None, reason="the leaf builder is not built here")
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.tuples(*[st.integers(-45, 10)] * 3), st.tuples(*[st.integers(1, 60)] * 3),
+       st.integers(1, 7))
+def test_strided_box_reads_what_the_plane_reads_read(seed, lo, shape, stride):
+    """The .vti's strided box (VTK point order, x fastest) through the compiled reader."""
+    from pipeline.io.vtkio import _strided_box
+
+    grid = _mixed_grid(seed, 1.0)
+    new = _strided_box(grid, np.array(lo), np.array(shape), stride)
+    old = _old_path(_strided_box, grid, np.array(lo), np.array(shape), stride)
+    assert new.shape == old.shape
+    assert np.array_equal(new, old)
+
+
+@pytest.mark.skipif(vg._leafbuild is None, reason="the leaf builder is not built here")
+def test_readers_refuse_bad_arrays():
+    grid = vdb.FloatGrid(0.0)
+    with pytest.raises(ValueError, match="writable float32"):
+        vg._leafbuild.sample(grid, np.zeros((2, 3), np.int64), np.zeros(2, np.float64))
+    with pytest.raises(ValueError, match="expected"):
+        vg._leafbuild.sample(grid, np.zeros((2, 3), np.int64), np.zeros(3, np.float32))
+    with pytest.raises(ValueError, match="out must hold"):
+        vg._leafbuild.strided_box(grid, (0, 0, 0), (2, 2, 2), 1, np.zeros(7, np.float32))

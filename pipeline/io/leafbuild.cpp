@@ -1,4 +1,5 @@
-// pipeline.io._leafbuild: OpenVDB leaves of a FloatGrid made from 8^3 blocks in C++.
+// pipeline.io._leafbuild: OpenVDB leaves of a FloatGrid made from 8^3 blocks in C++, and bulk
+// reads of a FloatGrid's values at points and on a strided box (the export's samplers).
 //
 // pyopenvdb's copyFromArray (tools::copyFromDense) is the only bulk write pyopenvdb 10 has. It
 // holds the GIL, plans its blocks from a dense box, and prunes the whole tree's tiles at the end
@@ -175,6 +176,81 @@ long add_tiles(py::object grid_obj, py::object origins_obj, py::object values_ob
     return static_cast<long>(n);
 }
 
+// A writable C-contiguous float32 buffer (an output array given by the caller).
+class OutBuffer {
+public:
+    OutBuffer(const py::object& obj, const char* what) {
+        if (PyObject_GetBuffer(obj.ptr(), &view_, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) != 0) {
+            py::throw_error_already_set();
+        }
+        const std::string fmt = view_.format ? view_.format : "B";
+        if (view_.itemsize != 4 || fmt.empty() || fmt.back() != 'f') {
+            PyBuffer_Release(&view_);
+            throw std::invalid_argument(std::string(what) + ": a writable float32 array expected");
+        }
+    }
+    ~OutBuffer() { PyBuffer_Release(&view_); }
+    OutBuffer(const OutBuffer&) = delete;
+    OutBuffer& operator=(const OutBuffer&) = delete;
+    float* data() const { return static_cast<float*>(view_.buf); }
+    Py_ssize_t count() const { return view_.len / 4; }
+
+private:
+    Py_buffer view_{};
+};
+
+using ConstAccessor = openvdb::tree::ValueAccessor<const FloatGrid::TreeType>;
+
+// Values (active or not: leaf values, tiles, the background, as OpenVDB stores them) at integer
+// voxels ``ijk`` (n, 3) int64 into ``out`` (n,) float32, in parallel (an accessor per range).
+void sample(py::object grid_obj, py::object ijk_obj, py::object out_obj) {
+    FloatGrid::Ptr grid = py::extract<FloatGrid::Ptr>(grid_obj);
+    Buffer ijk(ijk_obj, "ijk", "lq", 8);
+    OutBuffer out(out_obj, "out");
+    const Py_ssize_t n = ijk.count() / 3;
+    if (ijk.count() != 3 * n || out.count() != n) throw std::invalid_argument("sample: ijk (n, 3) and out (n,) expected");
+    const std::int64_t* p = ijk.data<std::int64_t>();
+    float* o = out.data();
+    const FloatGrid::TreeType& tree = grid->constTree();
+    Py_BEGIN_ALLOW_THREADS
+    tbb::parallel_for(tbb::blocked_range<Py_ssize_t>(0, n, 4096), [&](const tbb::blocked_range<Py_ssize_t>& r) {
+        ConstAccessor acc(tree);
+        for (Py_ssize_t q = r.begin(); q < r.end(); ++q) {
+            o[q] = acc.getValue(Coord(static_cast<int>(p[3 * q]), static_cast<int>(p[3 * q + 1]), static_cast<int>(p[3 * q + 2])));
+        }
+    });
+    Py_END_ALLOW_THREADS
+}
+
+// Values at lo + stride * (mx, my, mz) for m < dims into ``out`` (dims[2], dims[1], dims[0])
+// float32, x fastest (VTK's point order), in parallel over z-planes.
+void strided_box(py::object grid_obj, py::tuple lo, py::tuple dims, int stride, py::object out_obj) {
+    FloatGrid::Ptr grid = py::extract<FloatGrid::Ptr>(grid_obj);
+    OutBuffer out(out_obj, "out");
+    const int x0 = py::extract<int>(lo[0]), y0 = py::extract<int>(lo[1]), z0 = py::extract<int>(lo[2]);
+    const Py_ssize_t nx = py::extract<Py_ssize_t>(dims[0]), ny = py::extract<Py_ssize_t>(dims[1]),
+                     nz = py::extract<Py_ssize_t>(dims[2]);
+    if (stride < 1 || nx < 0 || ny < 0 || nz < 0 || out.count() != nx * ny * nz) {
+        throw std::invalid_argument("strided_box: out must hold dims[0] * dims[1] * dims[2] values, stride >= 1");
+    }
+    float* o = out.data();
+    const FloatGrid::TreeType& tree = grid->constTree();
+    Py_BEGIN_ALLOW_THREADS
+    tbb::parallel_for(tbb::blocked_range<Py_ssize_t>(0, nz), [&](const tbb::blocked_range<Py_ssize_t>& r) {
+        ConstAccessor acc(tree);
+        for (Py_ssize_t mz = r.begin(); mz < r.end(); ++mz) {
+            for (Py_ssize_t my = 0; my < ny; ++my) {
+                float* row = o + (mz * ny + my) * nx;
+                for (Py_ssize_t mx = 0; mx < nx; ++mx) {
+                    row[mx] = acc.getValue(Coord(x0 + static_cast<int>(stride * mx), y0 + static_cast<int>(stride * my),
+                                                 z0 + static_cast<int>(stride * mz)));
+                }
+            }
+        }
+    });
+    Py_END_ALLOW_THREADS
+}
+
 // Prune the tiles as copyFromArray does after every call (tools::pruneTiles, tolerance 0).
 void finish(py::object grid_obj) {
     FloatGrid::Ptr grid = py::extract<FloatGrid::Ptr>(grid_obj);
@@ -193,4 +269,7 @@ BOOST_PYTHON_MODULE(_leafbuild) {
                                         py::arg("scale") = 1.0f));
     py::def("add_tiles", &add_tiles, (py::arg("grid"), py::arg("origins"), py::arg("values"), py::arg("cell")));
     py::def("finish", &finish, py::arg("grid"));
+    py::def("sample", &sample, (py::arg("grid"), py::arg("ijk"), py::arg("out")));
+    py::def("strided_box", &strided_box, (py::arg("grid"), py::arg("lo"), py::arg("dims"), py::arg("stride"),
+                                          py::arg("out")));
 }

@@ -36,6 +36,13 @@ except ImportError:  # pragma: no cover - depends on the platform
     import pyopenvdb as vdb  # type: ignore[import-not-found,no-redef]
 
 
+def compiled_reads(grid):
+    """The compiled module's bulk readers (``sample``, ``strided_box``: OpenVDB accessors in
+    parallel, without the GIL) for a FloatGrid, None where they do not apply (other grid types,
+    the extension not built, FREPVDB_COPY_FROM_ARRAY=1)."""
+    return _leafbuild if _leafbuild is not None and isinstance(grid, vdb.FloatGrid) else None
+
+
 # --- writing leaves ------------------------------------------------------------------------------
 def linear_transform(voxel_size: float):
     """OpenVDB transform with voxel centres at integer multiples of ``voxel_size``."""

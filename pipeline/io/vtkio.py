@@ -56,6 +56,7 @@ from pipeline.io.meshkernels import (
     vertex_normal_sums,
     weld_kernel,
 )
+from pipeline.io.vdbgrids import compiled_reads
 from pipeline.sparse.grid import pack_keys
 from pipeline.util.atomic import atomic_path
 
@@ -155,6 +156,10 @@ def sample_values(grid: Any, ijk: np.ndarray) -> np.ndarray:
         return out
     if is_vector(grid):
         raise ValueError("sample_values reads scalar grids")
+    reads = compiled_reads(grid)
+    if reads is not None:  # an accessor per point in C++, in parallel: no chunk reads
+        reads.sample(grid, ijk, out)
+        return out
     ids, _, dims = chunk_ids(ijk, CHUNK_LOG2)
     if math.prod(dims.tolist()) <= MAX_CHUNK_GROUPS:
         order, starts = group_by_id(ids, int(math.prod(dims.tolist())))
@@ -234,6 +239,10 @@ def _strided_box(grid: Any, lo: np.ndarray, shape: np.ndarray, stride: int) -> n
     dims = [-(-n // stride) for n in (nx, ny, nz)]
     comps = (3,) if is_vector(grid) else ()
     out = np.empty((dims[2], dims[1], dims[0]) + comps, np.float32)
+    reads = compiled_reads(grid)
+    if reads is not None:  # only the strided points, read in parallel in C++
+        reads.strided_box(grid, tuple(int(c) for c in lo), tuple(dims), int(stride), out)
+        return out
     buf = np.empty((nx, 1, nz) + comps, np.float32)
     for m, j in enumerate(range(int(lo[1]), int(lo[1]) + ny, stride)):
         read_dense(grid, (int(lo[0]), j, int(lo[2])), (nx, 1, nz), out=buf)

@@ -809,3 +809,31 @@ def test_components_of_an_r0_mesh_run_on_its_sign_proxy(tmp_path):
     lg, lw = cc.point_labels(got, p), cc.point_labels(want, p)
     assert set(np.unique(lw)) == {1, 2}
     np.testing.assert_array_equal(lg, lw)  # labels in scan order of the lowest cell: the same numbers
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 3000), st.integers(0, 2**31 - 1), st.floats(0.0, 3.0))
+def test_cluster_ids_in_place_number_clusters_by_first_appearance(n, seed, density):
+    """_cluster_ids (written over the union-find forest) equals looking up every cell's root and
+    numbering the roots in order of first appearance; and it agrees with scipy's components of
+    the same edges."""
+    rng = np.random.default_rng(seed)
+    m = int(density * n)
+    rows, nbr = rng.integers(0, n, m), rng.integers(-1, n, (m, 6))
+    parent = np.arange(n)
+    cc._union_rows(parent, rows, nbr)
+    roots = np.array([cc._root(parent.copy(), r) for r in range(n)])
+    _, first = np.unique(roots, return_index=True)
+    rank = {int(roots[f]): i for i, f in enumerate(sorted(first))}
+    want = np.array([rank[int(a)] for a in roots])
+    got, count = cc._cluster_ids(parent.copy())
+    assert count == len(first)
+    assert np.array_equal(got, want)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    src, dst = np.repeat(rows, 6), nbr.reshape(-1)
+    keep = dst >= 0
+    graph = coo_matrix((np.ones(int(keep.sum())), (src[keep], dst[keep])), shape=(n, n))
+    k, lab = connected_components(graph, directed=False)
+    assert k == count
+    assert len(np.unique(np.stack([lab, got], axis=1), axis=0)) == count  # the same partition

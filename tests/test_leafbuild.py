@@ -5,6 +5,7 @@ blocks), written into empty grids and over grids that already hold leaves and ti
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from pathlib import Path
@@ -30,6 +31,17 @@ def test_the_leaf_builder_is_built_where_openvdb_headers_are():
     if os.environ.get("FREPVDB_COPY_FROM_ARRAY") == "1":
         pytest.skip("FREPVDB_COPY_FROM_ARRAY=1 asks for the old path")
     assert vg._leafbuild is not None, "pipeline.io._leafbuild was not built: run `make setup` and read its output"
+
+
+@contextlib.contextmanager
+def _path(compiled: bool):
+    """The compiled module (as built) or the pyopenvdb paths, for the calls inside."""
+    saved = vg._leafbuild
+    vg._leafbuild = saved if compiled else None
+    try:
+        yield
+    finally:
+        vg._leafbuild = saved
 
 
 def _items(grid) -> list[tuple]:
@@ -76,9 +88,7 @@ def _write(origins, values, active, bg, scale, batch, prior, compiled: bool, fil
         grid.fill((-8, -8, -8), (23, 7, 7), 1.5, True)
         grid.copyFromArray(np.full((8, 8, 8), 0.75, np.float32), (0, 8, 0))
         grid.copyFromArray(np.arange(512, dtype=np.float32).reshape(8, 8, 8), (64, 64, 64))
-    saved = vg._leafbuild
-    vg._leafbuild = saved if compiled else None
-    try:
+    with _path(compiled):
         if fill:
             def fill_rows(lo, hi, v, a):
                 v[:] = values[lo:hi]
@@ -86,8 +96,6 @@ def _write(origins, values, active, bg, scale, batch, prior, compiled: bool, fil
             vg.write_leaves(grid, LeafSource(1.0, bg, origins, fill=fill_rows), scale=scale, batch=batch)
         else:
             vg.write_batched(grid, origins, None, scale, batch, source=(values, active))
-    finally:
-        vg._leafbuild = saved
     return grid
 
 
@@ -136,12 +144,8 @@ def test_tiles_are_those_of_grid_fill(cells, cell, seed, prior, merge):
         if prior:
             grid.fill((-16, -16, -16), (15, 15, 15), 3.0, True)
             grid.copyFromArray(np.arange(512, dtype=np.float32).reshape(8, 8, 8), (0, 0, 8 * 3))
-        saved = vg._leafbuild
-        vg._leafbuild = saved if compiled else None
-        try:
+        with _path(compiled):
             vg.fill_tiles(grid, origins, values, cell=cell, merge_value=merge)
-        finally:
-            vg._leafbuild = saved
         grids.append(grid)
     old, new = grids
     assert new.activeVoxelCount() == old.activeVoxelCount()
@@ -162,12 +166,8 @@ def _mixed_grid(seed: int, bg: float):
 
 
 def _old_path(fn, *args):
-    saved = vg._leafbuild
-    vg._leafbuild = None
-    try:
+    with _path(compiled=False):
         return fn(*args)
-    finally:
-        vg._leafbuild = saved
 
 
 @pytest.mark.skipif(vg._leafbuild is None, reason="the leaf builder is not built here")

@@ -10,8 +10,8 @@
 // copyFromArray makes from the same values: a voxel is active where |v - background| > 0
 // (the tolerance copyFromArray is called with; NaN is not), an inactive voxel holds the
 // background, a block whose 512 voxels are all active with one value becomes an active tile of
-// the leaf's size, a block with no active voxel adds nothing (the grid must not hold a leaf or
-// tile there already: write_batched writes new blocks into an empty region).
+// the leaf's size, a block with no active voxel adds nothing (what was there stays), any other
+// block replaces what was there (copyFromDense overwrites a whole leaf's box too).
 //
 // The grid object comes from pyopenvdb (boost.python, FloatGrid::Ptr holder); this module is
 // built against the same OpenVDB and boost.python (Debian's libopenvdb-dev, libboost-python-dev)
@@ -74,32 +74,33 @@ struct Made {
 };
 
 Made make_block(const float* v, const bool* a, const Coord& origin, float scale, float bg) {
-    Made out;
-    int on = 0;
-    bool same = true;
-    float first = 0.0f;
-    for (Py_ssize_t n = 0; n < VOXELS; ++n) {
-        const float x = v[n] * scale;
-        const bool act = a[n] && std::abs(x - bg) > 0.0f;
-        if (act) {
-            if (on == 0) first = x;
-            else if (x != first) same = false;
-            ++on;
-        }
-    }
-    if (on == 0) return out;
-    if (on == VOXELS && same) {
-        out.is_tile = true;
-        out.tile = first;
-        return out;
-    }
     auto leaf = std::make_unique<LeafT>(origin, bg, false);
     for (Py_ssize_t n = 0; n < VOXELS; ++n) {
         const float x = v[n] * scale;
-        if (a[n] && std::abs(x - bg) > 0.0f) leaf->setValueOn(static_cast<openvdb::Index>(n), x);
+        if (a[n] && std::abs(x - bg) > 0.0f) leaf->setValueOn(static_cast<openvdb::Index>(n), x);  // NaN: off
+    }
+    Made out;
+    float value;
+    bool on;
+    if (leaf->isEmpty()) return out;
+    if (leaf->isConstant(value, on) && on) {  // every voxel active with one value
+        out.is_tile = true;
+        out.tile = value;
+        return out;
     }
     out.leaf = leaf.release();
     return out;
+}
+
+Coord coord_at(const std::int64_t* o, Py_ssize_t row) {
+    return Coord(static_cast<int>(o[3 * row]), static_cast<int>(o[3 * row + 1]), static_cast<int>(o[3 * row + 2]));
+}
+
+// Whether every coordinate of ``origins`` is a multiple of ``cell``.
+void check_aligned(const std::int64_t* o, Py_ssize_t n, int cell, const char* what) {
+    for (Py_ssize_t t = 0; t < 3 * n; ++t) {
+        if (o[t] % cell != 0) throw std::invalid_argument(std::string(what) + ": origins must be multiples of " + std::to_string(cell));
+    }
 }
 
 // Add blocks (origins (n, 3) int64; values (n, 8, 8, 8) float32; active (n, 8, 8, 8) bool)
@@ -117,18 +118,13 @@ py::tuple add_blocks(py::object grid_obj, py::object origins_obj, py::object val
     const std::int64_t* o = origins.data<std::int64_t>();
     const float* v = values.data<float>();
     const bool* a = active.data<bool>();
-    for (Py_ssize_t b = 0; b < n; ++b) {
-        for (int c = 0; c < 3; ++c) {
-            if (o[3 * b + c] % LeafT::DIM != 0) throw std::invalid_argument("add_blocks: origins must be multiples of 8");
-        }
-    }
+    check_aligned(o, n, LeafT::DIM, "add_blocks");
     const float bg = grid->background();
     std::vector<Made> made(static_cast<size_t>(n));
     Py_BEGIN_ALLOW_THREADS
     tbb::parallel_for(tbb::blocked_range<Py_ssize_t>(0, n, 64), [&](const tbb::blocked_range<Py_ssize_t>& r) {
         for (Py_ssize_t b = r.begin(); b < r.end(); ++b) {
-            const Coord origin(static_cast<int>(o[3 * b]), static_cast<int>(o[3 * b + 1]), static_cast<int>(o[3 * b + 2]));
-            made[b] = make_block(v + b * VOXELS, a + b * VOXELS, origin, scale, bg);
+            made[b] = make_block(v + b * VOXELS, a + b * VOXELS, coord_at(o, b), scale, bg);
         }
     });
     Py_END_ALLOW_THREADS
@@ -139,8 +135,7 @@ py::tuple add_blocks(py::object grid_obj, py::object origins_obj, py::object val
             acc.addLeaf(made[b].leaf);  // the tree owns it now
             ++leaves;
         } else if (made[b].is_tile) {
-            const Coord origin(static_cast<int>(o[3 * b]), static_cast<int>(o[3 * b + 1]), static_cast<int>(o[3 * b + 2]));
-            acc.addTile(1, origin, made[b].tile, true);
+            acc.addTile(1, coord_at(o, b), made[b].tile, true);
             ++tiles;
         }
     }
@@ -165,14 +160,9 @@ long add_tiles(py::object grid_obj, py::object origins_obj, py::object values_ob
     else throw std::invalid_argument("add_tiles: cell must be 8 or 128");
     const std::int64_t* o = origins.data<std::int64_t>();
     const float* v = values.data<float>();
-    for (Py_ssize_t t = 0; t < 3 * n; ++t) {
-        if (o[t] % cell != 0) throw std::invalid_argument("add_tiles: origins must be multiples of the cell");
-    }
+    check_aligned(o, n, cell, "add_tiles");
     openvdb::tree::ValueAccessor<FloatGrid::TreeType> acc(grid->tree());
-    for (Py_ssize_t t = 0; t < n; ++t) {
-        acc.addTile(level, Coord(static_cast<int>(o[3 * t]), static_cast<int>(o[3 * t + 1]),
-                                 static_cast<int>(o[3 * t + 2])), v[t], true);
-    }
+    for (Py_ssize_t t = 0; t < n; ++t) acc.addTile(level, coord_at(o, t), v[t], true);
     return static_cast<long>(n);
 }
 
@@ -216,7 +206,7 @@ void sample(py::object grid_obj, py::object ijk_obj, py::object out_obj) {
     tbb::parallel_for(tbb::blocked_range<Py_ssize_t>(0, n, 4096), [&](const tbb::blocked_range<Py_ssize_t>& r) {
         ConstAccessor acc(tree);
         for (Py_ssize_t q = r.begin(); q < r.end(); ++q) {
-            o[q] = acc.getValue(Coord(static_cast<int>(p[3 * q]), static_cast<int>(p[3 * q + 1]), static_cast<int>(p[3 * q + 2])));
+            o[q] = acc.getValue(coord_at(p, q));
         }
     });
     Py_END_ALLOW_THREADS

@@ -36,10 +36,10 @@ except ImportError:  # pragma: no cover - depends on the platform
     import pyopenvdb as vdb  # type: ignore[import-not-found,no-redef]
 
 
-def compiled_reads(grid):
-    """The compiled module's bulk readers (``sample``, ``strided_box``: OpenVDB accessors in
-    parallel, without the GIL) for a FloatGrid, None where they do not apply (other grid types,
-    the extension not built, FREPVDB_COPY_FROM_ARRAY=1)."""
+def compiled_for(grid):
+    """The compiled module (pipeline/io/leafbuild.cpp: leaves, tiles and bulk reads with
+    OpenVDB's C++ API) for a FloatGrid; None where it does not apply (other grid types, the
+    extension not built, FREPVDB_COPY_FROM_ARRAY=1): the pyopenvdb paths then."""
     return _leafbuild if _leafbuild is not None and isinstance(grid, vdb.FloatGrid) else None
 
 
@@ -64,73 +64,61 @@ def write_batched(grid, origins: np.ndarray, fill: Callable[[int, int, np.ndarra
     o = np.asarray(origins, np.int64).reshape(-1, 3)
     if len(o) == 0:
         return
-    if _leafbuild is not None and isinstance(grid, vdb.FloatGrid):
-        _add_batched(grid, o, fill, scale, batch, source, done)
+    batches = _batches(len(o), fill, batch, source, done)
+    k = np.float32(scale)
+    compiled = compiled_for(grid)
+    if compiled is not None:  # the same voxels, values and tiles, leaves made in parallel
+        for lo, hi, v, a in batches:
+            kv = k
+            if v.dtype != np.float32:  # scaled in the source's precision and rounded once, as _pack_runs does
+                v, kv = (v * k).astype(np.float32), np.float32(1.0)
+            compiled.add_blocks(grid, np.ascontiguousarray(o[lo:hi]), np.ascontiguousarray(v),
+                                np.ascontiguousarray(a, dtype=bool), float(kv))
+        compiled.finish(grid)  # the tiles pruned once, where copyFromArray prunes after every call
         return
     bg = np.float32(grid.background)
-    k = np.float32(scale)
     brk = np.ones(len(o), bool)  # a run starts where x, y change or z is not the next leaf
     brk[1:] = (o[1:, 0] != o[:-1, 0]) | (o[1:, 1] != o[:-1, 1]) | (o[1:, 2] != o[:-1, 2] + LEAF)
-    size = min(BATCH if batch is None else batch, len(o))
-    if fill is not None:
-        values = np.empty((size, LEAF, LEAF, LEAF), np.float32)
-        active = np.empty((size, LEAF, LEAF, LEAF), bool)
-    packed = np.empty(size * LEAF**3, np.float32)
-    for lo in range(0, len(o), size):
-        hi = min(lo + size, len(o))
-        n = hi - lo
-        if fill is not None:
-            fill(lo, hi, values[:n], active[:n])
-            src_v, src_a, first = values, active, 0
-        else:
-            src_v, src_a, first = source[0], source[1], lo
+    packed = np.empty(min(BATCH if batch is None else batch, len(o)) * LEAF**3, np.float32)
+    for lo, hi, v, a in batches:
         starts = np.flatnonzero(brk[lo:hi])
         if len(starts) == 0 or starts[0] != 0:  # a run that goes on from the previous batch restarts here
             starts = np.concatenate([[0], starts])
-        ends = np.append(starts[1:], n)
-        _pack_runs(src_v, src_a, first, starts, ends, k, bg, packed)
+        ends = np.append(starts[1:], hi - lo)
+        _pack_runs(v, a, starts, ends, k, bg, packed)
         for s, e in zip(starts.tolist(), ends.tolist(), strict=True):
             arr = packed[s * LEAF**3:e * LEAF**3].reshape(LEAF, LEAF, LEAF * (e - s))
             grid.copyFromArray(arr, (int(o[lo + s, 0]), int(o[lo + s, 1]), int(o[lo + s, 2])))
-        if done is not None:
-            done(hi)
 
 
-def _add_batched(grid, o: np.ndarray, fill, scale: float, batch: int | None, source, done) -> None:
-    """:func:`write_batched` through the compiled leaf builder (pipeline/io/leafbuild.cpp): the
-    same voxels, values and tiles as copyFromArray, with the leaves made in parallel and the
-    tiles pruned once at the end instead of after every run of leaves."""
-    size = min(BATCH if batch is None else batch, len(o))
+def _batches(n: int, fill, batch: int | None, source, done):
+    """(lo, hi, values, active) of blocks lo..hi-1, a batch at a time: filled by ``fill`` into
+    reused arrays, or slices of ``source``; ``done(hi)`` once the consumer asks for the next."""
+    size = min(BATCH if batch is None else batch, n)
     if fill is not None:
         values = np.empty((size, LEAF, LEAF, LEAF), np.float32)
         active = np.empty((size, LEAF, LEAF, LEAF), bool)
-    for lo in range(0, len(o), size):
-        hi = min(lo + size, len(o))
+    for lo in range(0, n, size):
+        hi = min(lo + size, n)
         if fill is not None:
             fill(lo, hi, values[:hi - lo], active[:hi - lo])
-            v, a = values[:hi - lo], active[:hi - lo]
+            yield lo, hi, values[:hi - lo], active[:hi - lo]
         else:
-            v, a = source[0][lo:hi], source[1][lo:hi]
-        k = np.float32(scale)
-        if v.dtype != np.float32:  # scaled in the source's precision and rounded once, as _pack_runs does
-            v, k = (v * k).astype(np.float32), np.float32(1.0)
-        _leafbuild.add_blocks(grid, np.ascontiguousarray(o[lo:hi]), np.ascontiguousarray(v),
-                              np.ascontiguousarray(a, dtype=bool), float(k))
+            yield lo, hi, source[0][lo:hi], source[1][lo:hi]
         if done is not None:
             done(hi)
-    _leafbuild.finish(grid)
 
 
 @njit(cache=True, parallel=True)
-def _pack_runs(values, active, first, starts, ends, k, bg, out):
-    """Each run of blocks first + starts[r] .. first + ends[r] - 1 as one C-ordered (8, 8, 8 m)
+def _pack_runs(values, active, starts, ends, k, bg, out):
+    """Each run of blocks starts[r] .. ends[r] - 1 as one C-ordered (8, 8, 8 m)
     array at ``out[512 starts[r]:]``: ``values * k`` where active, ``bg`` elsewhere."""
     for r in prange(starts.shape[0]):
         s, e = starts[r], ends[r]
         m = e - s
         base = s * 512
         for q in range(m):
-            b = first + s + q
+            b = s + q
             for i in range(8):
                 for j in range(8):
                     row = base + (i * 8 + j) * 8 * m + 8 * q
@@ -370,8 +358,9 @@ def fill_tiles(grid, origins: np.ndarray, values: np.ndarray, cell: int = LEAF,
             o, v = o[~same], v[~same]
             if len(o) == 0:
                 return
-    if _leafbuild is not None and isinstance(grid, vdb.FloatGrid) and cell in (LEAF, 128):
-        _leafbuild.add_tiles(grid, np.ascontiguousarray(o), np.ascontiguousarray(v), cell)  # the same tiles
+    compiled = compiled_for(grid)
+    if compiled is not None and cell in (LEAF, 128):  # the tiles grid.fill makes, one C++ call
+        compiled.add_tiles(grid, np.ascontiguousarray(o), np.ascontiguousarray(v), cell)
         return
     starts, ends = _z_runs(o, v, cell)
     _fill_runs(grid, o, v, starts, ends, cell)

@@ -56,7 +56,7 @@ from pipeline.io.meshkernels import (
     vertex_normal_sums,
     weld_kernel,
 )
-from pipeline.io.vdbgrids import compiled_reads
+from pipeline.io.vdbgrids import compiled_for
 from pipeline.sparse.grid import pack_keys
 from pipeline.util.atomic import atomic_path
 
@@ -156,7 +156,7 @@ def sample_values(grid: Any, ijk: np.ndarray) -> np.ndarray:
         return out
     if is_vector(grid):
         raise ValueError("sample_values reads scalar grids")
-    reads = compiled_reads(grid)
+    reads = compiled_for(grid)
     if reads is not None:  # an accessor per point in C++, in parallel: no chunk reads
         reads.sample(grid, ijk, out)
         return out
@@ -239,7 +239,7 @@ def _strided_box(grid: Any, lo: np.ndarray, shape: np.ndarray, stride: int) -> n
     dims = [-(-n // stride) for n in (nx, ny, nz)]
     comps = (3,) if is_vector(grid) else ()
     out = np.empty((dims[2], dims[1], dims[0]) + comps, np.float32)
-    reads = compiled_reads(grid)
+    reads = compiled_for(grid)
     if reads is not None:  # only the strided points, read in parallel in C++
         reads.strided_box(grid, tuple(int(c) for c in lo), tuple(dims), int(stride), out)
         return out

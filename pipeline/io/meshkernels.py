@@ -248,6 +248,22 @@ def _split_into(tris, quads, flip, out):
 
 
 @njit(cache=True)
+def view_bounds(points: np.ndarray, right: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((3,) lo, hi) of the points and ((2,) lo, hi) of their projections on ``right`` and ``up``
+    (as :func:`raster_surface` projects them), in one pass: NumPy's axis-0 reductions of a
+    (5.6M, 3) array took 0.3 s each at 1024^3."""
+    lo = np.full(5, np.inf)
+    hi = np.full(5, -np.inf)
+    for n in range(points.shape[0]):
+        x, y, z = np.float64(points[n, 0]), np.float64(points[n, 1]), np.float64(points[n, 2])
+        v = (x, y, z, x * right[0] + y * right[1] + z * right[2], x * up[0] + y * up[1] + z * up[2])
+        for a in range(5):
+            lo[a] = min(lo[a], v[a])
+            hi[a] = max(hi[a], v[a])
+    return lo, hi
+
+
+@njit(cache=True)
 def raster_surface(points: np.ndarray, triangles: np.ndarray, labels: np.ndarray, palette: np.ndarray,
                    right: np.ndarray, up: np.ndarray, eye: np.ndarray, light: np.ndarray,
                    x0: float, y0: float, scale: float, width: int, height: int) -> np.ndarray:

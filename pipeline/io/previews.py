@@ -20,7 +20,7 @@ from typing import Any
 import matplotlib
 import numpy as np
 
-from pipeline.io.meshkernels import raster_surface
+from pipeline.io.meshkernels import raster_surface, view_bounds
 from pipeline.io.report import SURFACE_PNG
 from pipeline.io.vtkio import (
     SurfaceMesh,
@@ -29,6 +29,7 @@ from pipeline.io.vtkio import (
     is_vector,
     pick_surface_source,
     read_dense,
+    triangle_indices,
     triangle_labels,
     union_active_bbox,
 )
@@ -296,11 +297,11 @@ def render_surface(path: str | os.PathLike, mesh: SurfaceMesh, component: Any | 
     else:
         cmap, _ = _label_cmap(int(max(labels.max(), 1)))
         palette = np.asarray(cmap(np.arange(cmap.N)))[:, :3]
-    xy = view.project(points.astype(np.float64))
-    lo2, hi2 = xy.min(axis=0), xy.max(axis=0)
+    lo, hi = view_bounds(np.ascontiguousarray(points), view.right, view.up)
+    lo2, hi2 = lo[3:], hi[3:]
     scale = raster / max(float((hi2 - lo2).max()), 1e-30)
     width, height = (int(np.ceil(float(e) * scale)) + 1 for e in hi2 - lo2)
-    rgba = raster_surface(np.ascontiguousarray(points), np.ascontiguousarray(tris, dtype=np.int64),
+    rgba = raster_surface(np.ascontiguousarray(points), triangle_indices(tris),
                           np.zeros(0, np.int32) if labels is None else np.ascontiguousarray(labels, dtype=np.int32),
                           np.ascontiguousarray(palette, dtype=np.float64), view.right, view.up, view.eye,
                           view.light, float(lo2[0]), float(lo2[1]), scale, width, height)
@@ -308,13 +309,12 @@ def render_surface(path: str | os.PathLike, mesh: SurfaceMesh, component: Any | 
     ax = fig.add_subplot()
     ax.imshow(rgba, origin="lower", extent=(lo2[0], lo2[0] + width / scale, lo2[1], lo2[1] + height / scale),
               interpolation="antialiased", zorder=1)
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    _draw_frame(ax, lo, hi, view)
+    _draw_frame(ax, lo[:3], hi[:3], view)
     ax.autoscale_view()
     ax.set_aspect("equal")
     ax.set_axis_off()
     if labels is not None:
-        ids = [int(k) for k in np.unique(labels) if k > 0]
+        ids = (np.flatnonzero(np.bincount(np.maximum(labels, 0))[1:]) + 1).tolist()  # np.unique: a sort
         cmap, _ = _label_cmap(max(ids, default=1))
         ax.legend(handles=[Patch(color=cmap((k - 1) % cmap.N), label=f"component {k}") for k in ids[:20]],
                   loc="upper right")

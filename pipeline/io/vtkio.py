@@ -364,7 +364,7 @@ def default_isovalue(name: str, grid: Any) -> float:
     return 0.5 if name == "density" or str(grid.gridClass) == "fog volume" else 0.0
 
 
-def _indices(triangles: np.ndarray) -> np.ndarray:
+def triangle_indices(triangles: np.ndarray) -> np.ndarray:
     """Triangle indices for the mesh kernels: C-contiguous int32 or int64 (kept as they come;
     any other integer type as int64)."""
     t = np.ascontiguousarray(triangles)
@@ -373,7 +373,7 @@ def _indices(triangles: np.ndarray) -> np.ndarray:
 
 def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals."""
-    return unit_rows(vertex_normal_sums(np.ascontiguousarray(points), _indices(triangles)))
+    return unit_rows(vertex_normal_sums(np.ascontiguousarray(points), triangle_indices(triangles)))
 
 
 def triangle_labels(
@@ -384,7 +384,7 @@ def triangle_labels(
     The nearest of the 8 is the rounded centroid: where it holds a label that is the answer
     (one sample per triangle); only the other triangles read all 8 corners."""
     points = np.ascontiguousarray(points)
-    triangles = _indices(triangles)
+    triangles = triangle_indices(triangles)
     out = np.empty(len(triangles), np.int32)
     # a chunk of triangles at a time: their centroid voxels (int64 (M, 3)) were 0.4 GB at 1024^3
     for s in range(0, len(triangles), LABEL_CHUNK):
@@ -417,7 +417,7 @@ def weld(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndar
     if len(points) == 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64)
     points = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
-    return weld_kernel(points, points.view(np.uint32), _indices(triangles))
+    return weld_kernel(points, points.view(np.uint32), triangle_indices(triangles))
 
 
 def extract_surface(

@@ -176,15 +176,30 @@ def test_vdb_failed_write_leaves_previous_file(grids: dict, tmp_path: Path) -> N
     assert not (tmp_path / "d.vdb").exists()
 
 
-def test_vdb_written_beside_is_the_same_file(grids: dict, tmp_path: Path) -> None:
-    """write_vdb_beside (a forked child writes while this process goes on): the same grids,
-    values, classes, half-float flags and file metadata as write_vdb, the caller's flags left
-    as they were, no temp file."""
-    from pipeline.io.vdbio import write_vdb_beside
+@pytest.fixture(params=["thread", "fork"])
+def beside(request, monkeypatch) -> str:
+    """write_vdb_beside's two ways: a thread through the compiled writer (where it is built),
+    a forked child through pyopenvdb."""
+    from pipeline.io import vdbio
+
+    if request.param == "fork":
+        monkeypatch.setattr(vdbio, "_leafbuild", None)
+    elif vdbio._leafbuild is None:
+        pytest.skip("the compiled writer is not built (tests/test_leafbuild.py says why)")
+    return request.param
+
+
+def test_vdb_written_beside_is_the_same_file(grids: dict, tmp_path: Path, beside: str) -> None:
+    """write_vdb_beside (a thread or a forked child writes while this process goes on): the same
+    grids, values, classes, half-float flags and file metadata as write_vdb, the caller's flags
+    left as they were, no temp file."""
+    from pipeline.io.vdbio import PendingWrite, ThreadedWrite, write_vdb_beside
 
     names = list(grids)
     pending = write_vdb_beside(tmp_path / "b.vdb", list(grids.values()), {"config": "x", "n": 2},
                                half_float={"surface"})
+    assert isinstance(pending, ThreadedWrite if beside == "thread" else PendingWrite)
+    assert not grids["surface"].saveFloatAsHalf  # the thread writes copies that carry the flags
     assert pending.wait() == tmp_path / "b.vdb" and not grids["surface"].saveFloatAsHalf
     write_vdb(tmp_path / "a.vdb", list(grids.values()), {"config": "x", "n": 2}, half_float={"surface"})
     (ga, ma), (gb, mb) = vdb.readAll(str(tmp_path / "a.vdb")), vdb.readAll(str(tmp_path / "b.vdb"))
@@ -204,10 +219,37 @@ def test_vdb_written_beside_is_the_same_file(grids: dict, tmp_path: Path) -> Non
     assert _no_temp_files(tmp_path)
 
 
+def test_vdb_written_by_a_thread_reports_its_error(grids: dict, tmp_path: Path, beside: str) -> None:
+    """Both ways: an OS error comes back from wait() as an OSError with its errno, bad arguments
+    are refused at once. The thread's cancel() lets the write end without a file in place; an
+    error of the compiled writer itself is a RuntimeError with OpenVDB's message."""
+    import errno
+
+    from pipeline.io.vdbio import _leafbuild, write_vdb_beside
+
+    (tmp_path / "file").write_text("not a folder")
+    pending = write_vdb_beside(tmp_path / "file" / "x.vdb", [grids["frep"]])
+    with pytest.raises(OSError) as err:
+        pending.wait()
+    assert err.value.errno in (errno.EEXIST, errno.ENOTDIR)
+    with pytest.raises(ValueError, match="unique"):
+        write_vdb_beside(tmp_path / "d.vdb", [grids["frep"], grids["frep"]])
+    pending = write_vdb_beside(tmp_path / "c.vdb", list(grids.values()))
+    pending.cancel()
+    pending.cancel()  # once is enough; a second call does nothing
+    assert not (tmp_path / "c.vdb").exists() and _no_temp_files(tmp_path)
+    if beside == "thread":
+        with pytest.raises(RuntimeError, match="no_such_folder"):
+            _leafbuild.write_file([grids["frep"]], str(tmp_path / "no_such_folder" / "y.vdb"), {}, [False])
+        with pytest.raises(ValueError, match="not a FloatGrid"):
+            _leafbuild.write_file([1], str(tmp_path / "z.vdb"), {}, [False])
+
+
 def test_vdb_written_beside_reports_the_childs_error(grids: dict, tmp_path: Path, monkeypatch) -> None:
-    """An OS error in the child comes back as an OSError with its errno and file, and so does a
-    child killed without a word (EIO, with the signal); bad arguments are refused before the
-    fork; cancel() kills and reaps a child that is still writing, and no file appears."""
+    """The forked child (no compiled writer): an OS error in the child comes back as an OSError
+    with its errno and file, and so does a child killed without a word (EIO, with the signal);
+    bad arguments are refused before the fork; cancel() kills and reaps a child that is still
+    writing, and no file appears."""
     import errno
     import os
     import signal
@@ -215,6 +257,8 @@ def test_vdb_written_beside_reports_the_childs_error(grids: dict, tmp_path: Path
 
     from pipeline.io import vdbio
     from pipeline.io.vdbio import write_vdb_beside
+
+    monkeypatch.setattr(vdbio, "_leafbuild", None)
 
     (tmp_path / "file").write_text("not a folder")
     pending = write_vdb_beside(tmp_path / "file" / "x.vdb", [grids["frep"]])

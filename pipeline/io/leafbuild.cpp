@@ -1,5 +1,6 @@
-// pipeline.io._leafbuild: OpenVDB leaves of a FloatGrid made from 8^3 blocks in C++, and bulk
-// reads of a FloatGrid's values at points and on a strided box (the export's samplers).
+// pipeline.io._leafbuild: OpenVDB leaves of a FloatGrid made from 8^3 blocks in C++, bulk
+// reads of a FloatGrid's values at points and on a strided box (the export's samplers), and
+// the .vdb file writer that releases the GIL (write_file).
 //
 // pyopenvdb's copyFromArray (tools::copyFromDense) is the only bulk write pyopenvdb 10 has. It
 // holds the GIL, plans its blocks from a dense box, and prunes the whole tree's tiles at the end
@@ -21,6 +22,7 @@
 #include <Python.h>
 
 #include <boost/python.hpp>
+#include <openvdb/io/File.h>
 #include <openvdb/openvdb.h>
 #include <openvdb/tools/Prune.h>
 #include <tbb/blocked_range.h>
@@ -241,6 +243,42 @@ void strided_box(py::object grid_obj, py::tuple lo, py::tuple dims, int stride, 
     Py_END_ALLOW_THREADS
 }
 
+// A pyopenvdb grid of one of the types pyopenvdb 10 registers (FloatGrid, Vec3SGrid, BoolGrid).
+openvdb::GridBase::Ptr as_grid(const py::object& obj) {
+    if (py::extract<FloatGrid::Ptr>(obj).check()) return py::extract<FloatGrid::Ptr>(obj)();
+    if (py::extract<openvdb::Vec3SGrid::Ptr>(obj).check()) return py::extract<openvdb::Vec3SGrid::Ptr>(obj)();
+    if (py::extract<openvdb::BoolGrid::Ptr>(obj).check()) return py::extract<openvdb::BoolGrid::Ptr>(obj)();
+    throw std::invalid_argument("write_file: not a FloatGrid, Vec3SGrid or BoolGrid");
+}
+
+// What pyopenvdb.write(path, grids, metadata) does (io::File::write of the grids with the file
+// metadata, which pyopenvdb's own dict -> MetaMap converter makes), without the GIL, so a
+// Python thread can write while the interpreter goes on. ``halves[i]``: store grid i's floats
+// as halves. The grids written are shallow copies (the same trees) that carry the flags: the
+// caller's grids are only read, as other threads may be reading them at the same time.
+void write_file(py::list grids, const std::string& path, py::object metadata, py::list halves) {
+    const Py_ssize_t n = py::len(grids);
+    if (py::len(halves) != n) throw std::invalid_argument("write_file: one half-float flag per grid expected");
+    openvdb::GridPtrVec out;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        openvdb::GridBase::Ptr copy = as_grid(grids[i])->copyGrid();
+        copy->setSaveFloatAsHalf(py::extract<bool>(halves[i]));
+        out.push_back(copy);
+    }
+    const openvdb::MetaMap meta = py::extract<openvdb::MetaMap>(metadata);
+    std::string error;
+    Py_BEGIN_ALLOW_THREADS
+    try {
+        openvdb::io::File file(path);
+        file.write(out, meta);
+        file.close();
+    } catch (const std::exception& e) {
+        error = e.what();
+    }
+    Py_END_ALLOW_THREADS
+    if (!error.empty()) throw std::runtime_error(error);
+}
+
 // Prune the tiles as copyFromArray does after every call (tools::pruneTiles, tolerance 0).
 void finish(py::object grid_obj) {
     FloatGrid::Ptr grid = py::extract<FloatGrid::Ptr>(grid_obj);
@@ -260,6 +298,7 @@ BOOST_PYTHON_MODULE(_leafbuild) {
     py::def("add_tiles", &add_tiles, (py::arg("grid"), py::arg("origins"), py::arg("values"), py::arg("cell")));
     py::def("finish", &finish, py::arg("grid"));
     py::def("sample", &sample, (py::arg("grid"), py::arg("ijk"), py::arg("out")));
+    py::def("write_file", &write_file, (py::arg("grids"), py::arg("path"), py::arg("metadata"), py::arg("halves")));
     py::def("strided_box", &strided_box, (py::arg("grid"), py::arg("lo"), py::arg("dims"), py::arg("stride"),
                                           py::arg("out")));
 }

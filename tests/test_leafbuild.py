@@ -212,3 +212,23 @@ def test_readers_refuse_bad_arrays():
         vg._leafbuild.sample(grid, np.zeros((2, 3), np.int64), np.zeros(3, np.float32))
     with pytest.raises(ValueError, match="out must hold"):
         vg._leafbuild.strided_box(grid, (0, 0, 0), (2, 2, 2), 1, np.zeros(7, np.float32))
+
+
+@pytest.mark.skipif(vg._leafbuild is None, reason="the leaf builder is not built here")
+@settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_blocks(), st.sampled_from([0.0, 0.3, 2.0]))
+def test_frep_signs_are_those_of_flood_fill_ax_and_background(case, bg):
+    """frep_to_vdb's FRep signs through frep_signs (flood fill, every value negated, the
+    background too, in C++) equal pyopenvdb's signedFloodFill + AX negation + background change:
+    every value, tile and activity, for blocks of any sign with NaN, zeros, constant (tile)
+    blocks and values at the background."""
+    origins, values, active, _, _, _, _ = case
+    blocks = vg.BlockGrid(1.0, bg, origins, values.astype(np.float32), active)
+    grids = []
+    for compiled in (False, True):
+        with _path(compiled):
+            grids.append(vg.frep_to_vdb(blocks, np.zeros((0, 2, 3), np.int64)))
+    old, new = grids
+    assert new.background == old.background
+    assert new.leafCount() == old.leafCount()
+    assert _items(new) == _items(old)

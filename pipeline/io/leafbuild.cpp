@@ -25,6 +25,8 @@
 #include <openvdb/io/File.h>
 #include <openvdb/openvdb.h>
 #include <openvdb/tools/Prune.h>
+#include <openvdb/tools/SignedFloodFill.h>
+#include <openvdb/tree/NodeManager.h>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
@@ -243,6 +245,35 @@ void strided_box(py::object grid_obj, py::tuple lo, py::tuple dims, int stride, 
     Py_END_ALLOW_THREADS
 }
 
+// Every value of a node negated: a leaf's 512 voxels (active or not), an internal node's or the
+// root's tiles (their value iterators skip the children).
+struct NegateAll {
+    void operator()(LeafT& leaf) const {
+        float* v = leaf.buffer().data();
+        for (openvdb::Index n = 0; n < LeafT::SIZE; ++n) v[n] = -v[n];
+    }
+    template <typename NodeT> void operator()(NodeT& node) const {
+        for (auto it = node.beginValueAll(); it; ++it) it.setValue(-*it);
+    }
+};
+
+// The FRep signs of a grid whose leaves hold -f (the level-set convention, background +bg):
+// OpenVDB's sign flood fill (inactive values and tiles inside -bg, outside +bg), then every
+// value negated, the background included (active f, inside +bg, outside -bg: SPEC's frep
+// row). pipeline.io.vdbgrids._frep_signed did this with pyopenvdb's signedFloodFill, an AX
+// negation of the active values and a background change that swapped +bg and -bg on the
+// inactive values: three passes, the GIL held, an AX kernel compiled per grid. Same values.
+void frep_signs(py::object grid_obj) {
+    FloatGrid::Ptr grid = py::extract<FloatGrid::Ptr>(grid_obj);
+    Py_BEGIN_ALLOW_THREADS
+    auto& tree = grid->tree();
+    openvdb::tools::signedFloodFill(tree);
+    openvdb::tree::NodeManager<FloatGrid::TreeType> nodes(tree);
+    nodes.foreachTopDown(NegateAll());
+    tree.root().setBackground(-tree.background(), /*updateChildNodes=*/false);
+    Py_END_ALLOW_THREADS
+}
+
 // A pyopenvdb grid of one of the types pyopenvdb 10 registers (FloatGrid, Vec3SGrid, BoolGrid).
 openvdb::GridBase::Ptr as_grid(const py::object& obj) {
     if (py::extract<FloatGrid::Ptr>(obj).check()) return py::extract<FloatGrid::Ptr>(obj)();
@@ -297,6 +328,7 @@ BOOST_PYTHON_MODULE(_leafbuild) {
                                         py::arg("scale") = 1.0f));
     py::def("add_tiles", &add_tiles, (py::arg("grid"), py::arg("origins"), py::arg("values"), py::arg("cell")));
     py::def("finish", &finish, py::arg("grid"));
+    py::def("frep_signs", &frep_signs, py::arg("grid"));
     py::def("sample", &sample, (py::arg("grid"), py::arg("ijk"), py::arg("out")));
     py::def("write_file", &write_file, (py::arg("grids"), py::arg("path"), py::arg("metadata"), py::arg("halves")));
     py::def("strided_box", &strided_box, (py::arg("grid"), py::arg("lo"), py::arg("dims"), py::arg("stride"),

@@ -25,6 +25,7 @@ from pipeline.io.vdbio import write_vdb_beside
 from pipeline.sparse.grid import BlockGrid
 from pipeline.topology import component_bricks as cb
 from pipeline.topology import components as cc
+from pipeline.util.heap import retained_heap
 from stages.base import FrepBand, StageParams, band_only
 
 REQUIRES = (FrepBand,)
@@ -67,6 +68,11 @@ def octree_frame(domain, tolerance: float | None, depth: int | None) -> tuple[np
 
 
 def run(ctx, p: Params) -> dict:
+    with retained_heap():  # short-lived arrays of several GiB at 2048^3 (pipeline.util.heap)
+        return _run(ctx, p)
+
+
+def _run(ctx, p: Params) -> dict:
     job = ctx.job
     origin, size, depth, region = octree_frame(job.domain, p.tolerance, p.depth)
     found = _detect(ctx, origin, size, depth, region)

@@ -232,3 +232,21 @@ def test_frep_signs_are_those_of_flood_fill_ax_and_background(case, bg):
     assert new.background == old.background
     assert new.leafCount() == old.leafCount()
     assert _items(new) == _items(old)
+
+
+@pytest.mark.skipif(vg._leafbuild is None, reason="the leaf builder is not built here")
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.0, 3.0, -1.0]), st.booleans())
+def test_min_max_is_eval_min_max(seed, bg, tiles_only):
+    """The compiled min_max equals pyopenvdb's evalMinMax over leaves, active tiles and values
+    beyond any leaf's; (0, 0) for a grid with nothing active, as evalMinMax gives."""
+    grid = vdb.FloatGrid(bg)
+    if tiles_only:
+        grid.fill((0, 0, 0), (127, 127, 127), 7.5, True)  # a node-sized tile, no leaf
+    else:
+        grid = _mixed_grid(seed, bg)
+        grid.fill((64, 64, 64), (71, 71, 71), float(seed % 97) - 50.0, True)
+    assert vg.min_max(grid) == grid.evalMinMax()
+    empty = vdb.FloatGrid(bg)
+    empty.fill((0, 0, 0), (7, 7, 7), 2.0, False)  # inactive values do not count
+    assert vg.min_max(empty) == empty.evalMinMax() == (0.0, 0.0)

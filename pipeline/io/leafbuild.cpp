@@ -24,6 +24,7 @@
 #include <boost/python.hpp>
 #include <openvdb/io/File.h>
 #include <openvdb/openvdb.h>
+#include <openvdb/tools/Count.h>
 #include <openvdb/tools/Prune.h>
 #include <openvdb/tools/SignedFloodFill.h>
 #include <openvdb/tree/NodeManager.h>
@@ -274,6 +275,19 @@ void frep_signs(py::object grid_obj) {
     Py_END_ALLOW_THREADS
 }
 
+// (min, max) of the active values, voxels and tiles: what Grid::evalMinMax gives ((0, 0) when
+// nothing is active), by OpenVDB's threaded reduction (tools::minMax) without the GIL. The
+// serial evalMinMax held the GIL for 0.2 s on the demo's hfrep grid at 1024^3.
+py::tuple min_max(py::object grid_obj) {
+    FloatGrid::Ptr grid = py::extract<FloatGrid::Ptr>(grid_obj);
+    if (!grid->constTree().cbeginValueOn()) return py::make_tuple(0.0f, 0.0f);
+    openvdb::math::MinMax<float> r;
+    Py_BEGIN_ALLOW_THREADS
+    r = openvdb::tools::minMax(grid->constTree(), /*threaded=*/true);
+    Py_END_ALLOW_THREADS
+    return py::make_tuple(r.min(), r.max());
+}
+
 // A pyopenvdb grid of one of the types pyopenvdb 10 registers (FloatGrid, Vec3SGrid, BoolGrid).
 openvdb::GridBase::Ptr as_grid(const py::object& obj) {
     if (py::extract<FloatGrid::Ptr>(obj).check()) return py::extract<FloatGrid::Ptr>(obj)();
@@ -329,6 +343,7 @@ BOOST_PYTHON_MODULE(_leafbuild) {
     py::def("add_tiles", &add_tiles, (py::arg("grid"), py::arg("origins"), py::arg("values"), py::arg("cell")));
     py::def("finish", &finish, py::arg("grid"));
     py::def("frep_signs", &frep_signs, py::arg("grid"));
+    py::def("min_max", &min_max, py::arg("grid"));
     py::def("sample", &sample, (py::arg("grid"), py::arg("ijk"), py::arg("out")));
     py::def("write_file", &write_file, (py::arg("grids"), py::arg("path"), py::arg("metadata"), py::arg("halves")));
     py::def("strided_box", &strided_box, (py::arg("grid"), py::arg("lo"), py::arg("dims"), py::arg("stride"),

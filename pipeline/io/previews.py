@@ -22,6 +22,7 @@ import numpy as np
 
 from pipeline.io.meshkernels import raster_surface, view_bounds
 from pipeline.io.report import SURFACE_PNG
+from pipeline.io.vdbgrids import min_max
 from pipeline.io.vtkio import (
     SurfaceMesh,
     default_isovalue,
@@ -95,7 +96,7 @@ def value_range(grid: Any, slices: list[Slice]) -> tuple[float, float]:
     HFRep grid) saturates instead of washing out the field.
     """
     if grid.activeVoxelCount() > 0:
-        lo, hi = grid.evalMinMax()
+        lo, hi = min_max(grid)
         return float(lo), float(hi)
     return min(float(s.values.min()) for s in slices), max(float(s.values.max()) for s in slices)
 

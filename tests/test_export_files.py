@@ -180,11 +180,11 @@ def test_vdb_failed_write_leaves_previous_file(grids: dict, tmp_path: Path) -> N
 def beside(request, monkeypatch) -> str:
     """write_vdb_beside's two ways: a thread through the compiled writer (where it is built),
     a forked child through pyopenvdb."""
-    from pipeline.io import vdbio
+    from pipeline.io import vdbgrids
 
     if request.param == "fork":
-        monkeypatch.setattr(vdbio, "_leafbuild", None)
-    elif vdbio._leafbuild is None:
+        monkeypatch.setattr(vdbgrids, "_leafbuild", None)
+    elif vdbgrids._leafbuild is None:
         pytest.skip("the compiled writer is not built (tests/test_leafbuild.py says why)")
     return request.param
 
@@ -225,7 +225,8 @@ def test_vdb_written_by_a_thread_reports_its_error(grids: dict, tmp_path: Path, 
     error of the compiled writer itself is a RuntimeError with OpenVDB's message."""
     import errno
 
-    from pipeline.io.vdbio import _leafbuild, write_vdb_beside
+    from pipeline.io.vdbgrids import _leafbuild
+    from pipeline.io.vdbio import write_vdb_beside
 
     (tmp_path / "file").write_text("not a folder")
     pending = write_vdb_beside(tmp_path / "file" / "x.vdb", [grids["frep"]])
@@ -254,10 +255,10 @@ def test_vdb_written_beside_reports_the_childs_error(grids: dict, tmp_path: Path
     import signal
     import time
 
-    from pipeline.io import vdbio
+    from pipeline.io import vdbgrids, vdbio
     from pipeline.io.vdbio import write_vdb_beside
 
-    monkeypatch.setattr(vdbio, "_leafbuild", None)
+    monkeypatch.setattr(vdbgrids, "_leafbuild", None)
     slow = vdbio._write_now
 
     def stalled(*args):  # the forked child inherits this: it is still writing when killed

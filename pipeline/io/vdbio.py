@@ -20,11 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.io.vdbgrids import _leafbuild, vdb
+from pipeline.io.vdbgrids import compiled_writer, vdb
 from pipeline.util.atomic import atomic_path
 from pipeline.util.errors import InputError
 
-_WRITABLE = (vdb.FloatGrid, vdb.Vec3SGrid, vdb.BoolGrid)  # the types the compiled writer takes
 HALF_EXACT_INT = 2048  # largest integer below which every integer is exact in IEEE half precision
 _INT64 = (-(2**63), 2**63 - 1)
 
@@ -197,16 +196,16 @@ class ThreadedWrite:
     (pipeline/io/leafbuild.cpp ``write_file``: pyopenvdb's io::File write without the GIL);
     :meth:`wait` returns its path or raises the thread's error."""
 
-    def __init__(self, path: Path, grids: list, file_metadata: Mapping[str, Any], halves: set[str]):
+    def __init__(self, writer, path: Path, grids: list, file_metadata: Mapping[str, Any], halves: set[str]):
         self.path, self._error, self._cancelled = path, None, False
-        args = (list(grids), file_metadata_dict(file_metadata), [g.name in halves for g in grids])
+        args = (writer, list(grids), file_metadata_dict(file_metadata), [g.name in halves for g in grids])
         self._thread = threading.Thread(target=self._run, args=args, name=f"writing {path.name}", daemon=True)
         self._thread.start()
 
-    def _run(self, grids: list, metadata: dict, halves: list[bool]) -> None:
+    def _run(self, writer, grids: list, metadata: dict, halves: list[bool]) -> None:
         try:
             with atomic_path(self.path) as tmp:
-                _leafbuild.write_file(grids, str(tmp), metadata, halves)
+                writer(grids, str(tmp), metadata, halves)
                 if self._cancelled:  # the temp file is removed, nothing is renamed into place
                     raise _Cancelled
         except BaseException as e:  # noqa: BLE001 - raised again by wait()
@@ -251,14 +250,12 @@ def write_vdb_beside(
     path = Path(path)
     halves = _checked_halves(grids, half_float)
     meta = dict(file_metadata or {})
-    if os.environ.get("FREPVDB_SERIAL_WRITE") == "1":
+    writer = compiled_writer(grids)
+    if os.environ.get("FREPVDB_SERIAL_WRITE") == "1" or (writer is None and not hasattr(os, "fork")):
         _write_now(path, grids, meta, halves)
         return PendingWrite(path, None, None)
-    if _leafbuild is not None and all(isinstance(g, _WRITABLE) for g in grids):
-        return ThreadedWrite(path, grids, meta, halves)
-    if not hasattr(os, "fork"):
-        _write_now(path, grids, meta, halves)
-        return PendingWrite(path, None, None)
+    if writer is not None:
+        return ThreadedWrite(writer, path, grids, meta, halves)
     read_end, write_end = os.pipe()
     pid = os.fork()
     if pid == 0:  # the child: write, report, leave without running the parent's exit handlers

@@ -450,7 +450,9 @@ def _bsp(F, k, a, b, c, orc, sj, sv):
     return _from_interval(_down(flo), _up(fhi))
 
 
-@_jit()
+# inlined (as _form_box): a call per clause and box passed the arrays and the 5-tuple through memory;
+# inlined, the affine pass of the demo takes 0.21 s instead of 0.36 s on 400k boxes (the same bits)
+@_jit(inline="always")
 def _clause(o, F, k, a, b, c):
     """The form of (non-leaf, non-mesh) clause k from its operands' forms in F."""
     ia, ib, ck = a[k], b[k], c[k]
@@ -510,7 +512,7 @@ def _clause(o, F, k, a, b, c):
     return _unbounded()  # an opcode this module does not know: no bound
 
 
-@_jit()
+@_jit(inline="always")
 def _form_box(lo, hi, op, a, b, c, F, orc, sj, sv):
     """Every clause's form over the box lo..hi (3,) into F (len(op), 5)."""
     for k in range(op.shape[0]):

@@ -799,23 +799,32 @@ def eval_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c, orc
 
 @njit(parallel=True, cache=True)
 def eval_points(pts, start, length, res, op, a, b, c, orc, odepth):
-    """Values of tape 0 at points (N, 3), in batches of 64."""
+    """Values of tape 0 at points (N, 3), in batches of BATCH; the registers, stacks and
+    coordinate rows allocated once per chunk of batches (per batch they cost as much as the
+    arithmetic of a short tape)."""
     n = pts.shape[0]
     out = np.empty(n)
     ln = length[0]
-    nb = (n + 63) // 64
-    for q in prange(nb):
-        reg = np.empty((max(ln, 1), 64))
+    nb = (n + BATCH - 1) // BATCH
+    per = max(1, (nb + 255) // 256)
+    for ch in prange((nb + per - 1) // per):
+        reg = np.empty((max(ln, 1), BATCH))
         sj = np.empty((2, odepth + 2), np.int64)
         sv = np.empty((2, odepth + 2))
-        none_n, none_f, none_i, none_r = np.empty((0, 3)), np.empty(0), np.empty(0, np.int64), np.empty((0, 64))
-        lo = q * 64
-        m = min(64, n - lo)
-        vals = _run_batch(op, a, b, c, start[0], ln, res[0], pts[lo:lo + m, 0].copy(), pts[lo:lo + m, 1].copy(),
-                          pts[lo:lo + m, 2].copy(), reg, m, orc, sj, sv, False, none_n, none_f, none_i, none_i,
-                          none_i, none_r, none_f, 0, none_i)
-        out[lo:lo + m] = vals[:m]
+        px, py, pz = np.empty(BATCH), np.empty(BATCH), np.empty(BATCH)
+        none_n, none_f, none_i, none_r = np.empty((0, 3)), np.empty(0), np.empty(0, np.int64), np.empty((0, BATCH))
+        for q in range(ch * per, min(nb, (ch + 1) * per)):
+            lo = q * BATCH
+            m = min(BATCH, n - lo)
+            for v in range(m):
+                px[v], py[v], pz[v] = pts[lo + v, 0], pts[lo + v, 1], pts[lo + v, 2]
+            vals = _run_batch(op, a, b, c, start[0], ln, res[0], px, py, pz, reg, m, orc, sj, sv, False, none_n,
+                              none_f, none_i, none_i, none_i, none_r, none_f, 0, none_i)
+            out[lo:lo + m] = vals[:m]
     return out
+
+
+BATCH = 128  # points per register row of eval_points (64 -> 128: 0.16 -> 0.11 s for 3M points of the demo)
 
 
 # --- gradients (forward mode) -------------------------------------------------------------------

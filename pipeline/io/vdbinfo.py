@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.io.vdbgrids import vdb
+from pipeline.io.vdbgrids import min_max, vdb
 
 _SKIP_META = {"name", "class"}  # shown in the grid's header line
 
@@ -189,7 +189,7 @@ def _range_lines(grid: Any) -> list[str]:
     (OpenVDB's evalMinMax orders vectors lexicographically, which says little about a field.)
     """
     if not grid.valueTypeName.startswith("vec"):
-        vmin, vmax = grid.evalMinMax()
+        vmin, vmax = min_max(grid)
         return [f"  active min:    {_fmt(float(vmin))}", f"  active max:    {_fmt(float(vmax))}"]
     values = np.array([item.value for item in grid.citerOnValues()], dtype=np.float64).reshape(-1, 3)
     norm = np.linalg.norm(values, axis=1)

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.io.vdbgrids import compiled_writer, vdb
+from pipeline.io.vdbgrids import compiled_writer, min_max, vdb
 from pipeline.util.atomic import atomic_path
 from pipeline.util.errors import InputError
 
@@ -100,7 +100,7 @@ def _check_half_safe(grid: Any) -> None:
     """Refuse half precision for integer labels that half floats cannot represent exactly."""
     if grid.name != "component" or grid.activeVoxelCount() == 0:
         return
-    _, vmax = grid.evalMinMax()
+    _, vmax = min_max(grid)
     if float(vmax) > HALF_EXACT_INT:
         raise ValueError(
             f"grid 'component' has labels up to {int(vmax)}; half precision is exact only up to "

@@ -200,6 +200,32 @@ def test_dask_local_workers_share_the_cores(cluster) -> None:
     assert cluster.map(numba_threads, list(range(6))) == [max(1, (os.cpu_count() or 1) // 2)] * 6
 
 
+def test_local_cluster_keeps_its_http_endpoints_on_this_host() -> None:
+    """Our LocalCluster has no dashboard, and the scheduler's HTTP endpoints listen on a free
+    port of 127.0.0.1: not on every interface at :8787, where a second cluster (another batch
+    run, a parallel test worker) found the port taken and Distributed warned."""
+    import socket
+    import warnings
+
+    holder = socket.socket()
+    try:
+        holder.bind(("127.0.0.1", 8787))
+        holder.listen()
+    except OSError:
+        pass  # taken already: the case this test is about
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", UserWarning)
+            ex = DaskExecutor(workers=1)
+        try:
+            link = ex.client.dashboard_link
+            assert link.startswith("http://127.0.0.1:") and ":8787/" not in link, link
+        finally:
+            ex.close()
+    finally:
+        holder.close()
+
+
 def test_bricked_r0_mesh_matches_the_unsplit_run(tmp_path):
     """Bricks sample an r0 mesh's sign proxy (its min_max twin) in the workers and the parent
     evaluates the mesh itself in the band's reach: the written grid equals the unsplit run's."""

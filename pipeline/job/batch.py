@@ -126,8 +126,12 @@ class DaskExecutor(Executor):
                 raise ConfigError.one(f"--scheduler {scheduler}", None, (), f"cannot reach the Dask scheduler within "
                                       f"{SCHEDULER_TIMEOUT:g} s ({why})") from None
         else:
+            # no dashboard; the scheduler's HTTP endpoints (health, metrics) on a free port of
+            # this host only: with dashboard_address=None Distributed still serves them on every
+            # interface at :8787, and warns when another cluster holds that port
             self.cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
-                                        processes=True, dashboard_address=None)
+                                        processes=True, dashboard_address=None,
+                                        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
             self.client = Client(self.cluster)
         self.workers = len(self.client.scheduler_info()["workers"])
         # our own workers share this machine's cores; a remote cluster's workers keep theirs

@@ -35,6 +35,27 @@ def _numba_cache_dir() -> None:
 
 _numba_cache_dir()
 
+
+def _cache_is_new() -> bool:
+    cache = os.environ.get("NUMBA_CACHE_DIR")
+    return bool(cache) and not Path(cache).is_dir()
+
+
+#: no cache folder for these sources when this process started (looked at on import: the first
+#: compiled function makes the folder, and building a model compiles some)
+CACHE_IS_NEW = _cache_is_new()
+
+
+def first_run_notice() -> str | None:
+    """A line for the user when this process found no cache folder for these sources: the run
+    compiles every kernel it uses first (about 3 minutes for the demo on 2 cores; later runs load
+    them in about a second), and without a word that looks like a hang."""
+    if not CACHE_IS_NEW:
+        return None
+    return (f"note: first run of this frepvdb version: compiling its kernels, a few minutes; they are "
+            f"cached in {os.environ['NUMBA_CACHE_DIR']} for the runs after this one")
+
+
 #: Numba's threading layers in the order we want them: GNU OpenMP first. With the TBB layer
 #: (Numba's default when libtbb is present, as on Debian) the cost of launching a parallel
 #: kernel grows with the number of launches in a process: 22 us for the first thousand, 0.9 ms

@@ -183,11 +183,15 @@ def cmd_collide(args) -> int:
 
 
 def cmd_run(args) -> int:
+    from pipeline import first_run_notice
     from pipeline.job.batch import make_executor, run_batch
     from pipeline.job.config import load_jobs
     from pipeline.job.display import BatchProgress
     from pipeline.job.runner import model_warnings
 
+    notice = first_run_notice()
+    if notice and sys.stderr.isatty():  # before the models are built: that compiles already
+        print(notice, file=sys.stderr)
     status = EXIT_OK
     jobs = []
     for cfg in args.configs:

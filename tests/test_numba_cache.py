@@ -52,3 +52,16 @@ def test_cache_folder_changes_with_a_provider(tmp_path, monkeypatch) -> None:
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     pipeline._numba_cache_dir()
     assert os.environ["NUMBA_CACHE_DIR"] != first
+
+
+def test_first_run_says_it_compiles(tmp_path, monkeypatch) -> None:
+    """A run that found no cache folder for these sources tells the user it is compiling."""
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "not-yet"))
+    assert pipeline._cache_is_new()
+    monkeypatch.setattr(pipeline, "CACHE_IS_NEW", pipeline._cache_is_new())
+    notice = pipeline.first_run_notice()
+    assert notice is not None and "compiling" in notice and str(tmp_path / "not-yet") in notice
+    (tmp_path / "not-yet").mkdir()
+    assert not pipeline._cache_is_new()
+    monkeypatch.setattr(pipeline, "CACHE_IS_NEW", False)
+    assert pipeline.first_run_notice() is None

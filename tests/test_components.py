@@ -564,7 +564,7 @@ KNOT = Path(__file__).resolve().parents[2] / "shared" / "meshes" / "knot2.off"
 @pytest.mark.skipif(not KNOT.exists(), reason="../shared/meshes is absent")
 def test_two_component_knot_mesh():
     model = node({"mesh": {"path": str(KNOT)}})
-    v = np.loadtxt(KNOT, skiprows=2, max_rows=5760)
+    v = np.loadtxt(KNOT, skiprows=3, max_rows=5760)  # OFF, counts, an empty line, the vertices
     lo, hi = v.min(axis=0), v.max(axis=0)
     size = 1.1 * float((hi - lo).max())
     pad = 0.05 * size

@@ -111,7 +111,7 @@ def _convert_parser(sub) -> None:
         "convert", help="mesh -> .vdb (frep, and --surface level set) or .vdb level set -> mesh",
         description="One-step conversions, like vdb_tool -read part.stl -mesh2ls -write part.vdb. A mesh "
                     "(.off .obj .stl .ply) becomes a .vdb with the 'frep' grid (BSP-field or ADF), and the "
-                    "'surface' level set with --surface; the domain is the mesh's bounds padded by 10%% and the "
+                    "'surface' level set with --surface; the domain is the mesh's bounds padded by 10% and the "
                     "band. A .vdb becomes a closed triangle mesh (.stl .3mf .ply .obj) of its 'surface' grid "
                     "(else a level set, else 'frep').")
     v.add_argument("input", type=Path, help="mesh (.off .obj .stl .ply) or .vdb")

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import ast
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pipeline
@@ -65,3 +67,66 @@ def test_first_run_says_it_compiles(tmp_path, monkeypatch) -> None:
     assert not pipeline._cache_is_new()
     monkeypatch.setattr(pipeline, "CACHE_IS_NEW", False)
     assert pipeline.first_run_notice() is None
+
+
+def _parallel_callers(trees: dict[str, ast.Module]) -> list[str]:
+    """Compiled functions that call a ``parallel=True`` compiled function (of their module or
+    imported from another pipeline module)."""
+    parallel, compiled, imported = set(), set(), {}
+    for name, tree in trees.items():
+        module = "pipeline." + name.removesuffix(".py").replace("/", ".")
+        imported[module] = {a.asname or a.name: f"{n.module}.{a.name}" for n in ast.walk(tree)
+                            if isinstance(n, ast.ImportFrom) and n.module and n.module.startswith("pipeline.")
+                            for a in n.names}
+        for fn in (n for n in tree.body if isinstance(n, ast.FunctionDef)):
+            decorators = [ast.unparse(d) for d in fn.decorator_list]
+            if any("jit" in d for d in decorators):
+                compiled.add(f"{module}.{fn.name}")
+                if any("parallel=True" in d for d in decorators):
+                    parallel.add(f"{module}.{fn.name}")
+    found = []
+    for name, tree in trees.items():
+        module = "pipeline." + name.removesuffix(".py").replace("/", ".")
+        for fn in (n for n in tree.body if isinstance(n, ast.FunctionDef) and f"{module}.{n.name}" in compiled):
+            for called in _calls(fn):
+                target = imported[module].get(called, f"{module}.{called}")
+                if target in parallel:
+                    found.append(f"{module}.{fn.name} -> {target}")
+    return found
+
+
+def test_no_compiled_function_calls_a_parallel_one() -> None:
+    """Numba's cache crashes such a caller (numba issues #8578, #4807): compiled in a process
+    that loaded the parallel callee from the cache, it segfaults when it is loaded later.
+    Parallel kernels are called from Python."""
+    trees = {p.relative_to(ROOT).as_posix(): ast.parse(p.read_text()) for p in ROOT.rglob("*.py")}
+    assert _parallel_callers(trees) == []
+    probe = ast.parse("from numba import njit\n@njit(parallel=True)\ndef p(a):\n    return a\n"
+                      "@njit(cache=True)\ndef q(a):\n    return p(a)\n")
+    assert _parallel_callers({"probe.py": probe}) == ["pipeline.probe.q -> pipeline.probe.p"]  # the scan sees one
+
+
+MERGE = """
+import sys
+import numpy as np
+from pipeline.io import meshkernels as mk
+rng = np.random.default_rng(3)
+pts = rng.integers(0, 40, (3000, 3)).astype(np.float32)
+tris = rng.integers(0, 3000, (5000, 3)).astype(np.int64)
+if sys.argv[1] == "callee":
+    mk.unique_rows_first(pts.view(np.uint32))
+else:
+    source, t = mk.merge_kernel(pts.view(np.uint32), tris)
+    p, w = mk.weld_kernel(pts, pts.view(np.uint32), tris)
+    print(len(source), len(t), len(p), len(w))
+"""
+
+
+def test_mesh_merges_run_from_the_cache_after_their_parallel_step(tmp_path) -> None:
+    """The order that crashed ``frepvdb convert x.vdb x.stl``: one process caches the parallel
+    point merge (a run that wrote a .vtp), the next compiles the mesh merge, the third loads it."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    runs = [subprocess.run([sys.executable, "-c", MERGE, step], env=env, capture_output=True, text=True,
+                           timeout=600, cwd=ROOT.parent) for step in ("callee", "compile", "load")]
+    assert [r.returncode for r in runs] == [0, 0, 0], runs[-1].stderr[-2000:]
+    assert runs[1].stdout == runs[2].stdout and runs[2].stdout.strip()

@@ -113,7 +113,13 @@ def _compact(used: np.ndarray) -> tuple[np.ndarray, int]:
     return remap, count
 
 
-@njit(cache=True, parallel=True)
+# Compiled functions here never call a parallel compiled function (unique_rows_first): they
+# take its result from Python. A cached caller compiled in a process that loaded its parallel
+# callee from the cache crashes when it is loaded later (numba issues #8578, #4807: the
+# gufunc's native name differs between the processes); merge_kernel did, in `frepvdb convert
+# x.vdb x.stl` after any run had written a .vtp (tests/test_meshout.py).
+
+
 def weld_kernel(points: np.ndarray, bits: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Merge bit-identical float32 points (``bits``: the points viewed as uint32), drop zero-area
     triangles (float64 cross product of the merged points, exactly zero), drop unused points.
@@ -121,6 +127,13 @@ def weld_kernel(points: np.ndarray, bits: np.ndarray, triangles: np.ndarray) -> 
     used points and the output rows are counted in order, so the result does not depend on the
     threads."""
     rep, first = unique_rows_first(bits)
+    return _weld(points, triangles, rep, first)
+
+
+@njit(cache=True, parallel=True)
+def _weld(points: np.ndarray, triangles: np.ndarray, rep: np.ndarray,
+          first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`weld_kernel` after the merge of the points."""
     m = triangles.shape[0]
     keep = np.zeros(m, np.bool_)
     for t in prange(m):
@@ -391,12 +404,17 @@ def unit_rows(acc: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
 def merge_kernel(bits: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Merge bit-identical rows of ``bits`` (points as uint32), drop triangles with a repeated
     vertex (zero-area ones with three distinct vertices stay) and unused points. Returns (the
     index of each kept point's first occurrence, triangles over the kept points)."""
     rep, first = unique_rows_first(bits)
+    return _merge(triangles, rep, first)
+
+
+@njit(cache=True)
+def _merge(triangles: np.ndarray, rep: np.ndarray, first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`merge_kernel` after the merge of the points."""
     m = triangles.shape[0]
     keep = np.zeros(m, np.bool_)
     used = np.zeros(len(first), np.bool_)

@@ -125,6 +125,8 @@ def _convert_parser(sub) -> None:
                    help="R-functions of the BSP-field (default min_max: compiled per-cell tapes; r0, sardf: C1)")
     v.add_argument("--method", choices=["bsp", "adf"], default="bsp", help="exact BSP-field or approximate ADF")
     v.add_argument("--surface", action="store_true", help="also the 'surface' level set (eikonal distance)")
+    v.add_argument("--allow-open", action="store_true",
+                   help="convert a mesh that is not closed (with a warning; its field is then not exact)")
     v.add_argument("--grid", default=None, help="grid of a .vdb input to mesh (default: surface, a level set, frep)")
     v.add_argument("--debug", action="store_true", help="print tracebacks of failures")
     v.set_defaults(func=cmd_convert)
@@ -311,7 +313,8 @@ def convert_config(args, bounds) -> dict:
     stages.append({"export": {"vdb": True, "grids": grids, "report": False}})
     return {"name": "convert",
             "domain": {"bounds": [(lo - pad).tolist(), (hi + pad).tolist()], "voxel_size": float(h)},
-            "model": {"mesh": {"path": str(args.input.resolve()), "method": args.method, "rfunc": args.rfunc}},
+            "model": {"mesh": {"path": str(args.input.resolve()), "method": args.method, "rfunc": args.rfunc,
+                               **({"allow_open": True} if getattr(args, "allow_open", False) else {})}},
             "stages": stages}
 
 
@@ -348,6 +351,8 @@ def _mesh_to_vdb(args) -> int:
         os.replace(work / "convert" / "convert.vdb", args.output)  # verified by the runner; one rename
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    for w in row.get("warnings", []):  # the manifest that held them is not kept
+        print(f"warning: {w}", file=sys.stderr)
     print(f"{args.output}: {', '.join(jobs[0].stages[-1][1].grids)} (voxel size {jobs[0].domain.voxel_size:g}, "
           f"{row.get('active_voxels')} active voxels, {row['seconds']:.2f} s)")
     return EXIT_OK

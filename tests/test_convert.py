@@ -94,7 +94,8 @@ def test_round_trip_5k_faces_at_256(tmp_path, torus) -> None:
     (["{mesh}", "x.vdb", "--voxel-size", "-1"], "--voxel-size must be a finite number > 0"),
     (["{mesh}", "x.vdb", "--band", "nan"], "--band must be a finite number > 0"),
     (["{mesh}", "x.vdb", "--resolution", "0"], "--resolution must be > 0"),
-    (["{open}", "x.vdb"], "mesh is not closed"),
+    (["{open}", "x.vdb"], "mesh is not closed (not watertight), so its field has no inside; set allow_open: true "
+                          "(frepvdb convert: --allow-open)"),
     (["{notvdb}", "x.stl"], "does not open as a .vdb"),
     (["x.txt", "x.vdb"], "cannot convert '.txt'"),
 ])
@@ -108,6 +109,19 @@ def test_bad_input_is_exit_2_with_one_line(tmp_path, torus, capsys, args, messag
     assert main(["convert", *argv]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
+
+
+def test_allow_open_converts_an_open_mesh_with_a_warning(tmp_path, capsys) -> None:
+    """The flag the refusal names: the open box converts, with the mesh's warning in the output."""
+    open_mesh = trimesh.creation.box()
+    open_mesh.update_faces(np.arange(len(open_mesh.faces)) > 0)
+    open_mesh.export(str(tmp_path / "open.off"))
+    assert main(["convert", str(tmp_path / "open.off"), str(tmp_path / "o.vdb"), "--resolution", "32",
+                 "--allow-open"]) == 0
+    out = capsys.readouterr()
+    assert "not closed" in out.err, out
+    g = vdb.read(str(tmp_path / "o.vdb"), "frep")
+    assert g.activeVoxelCount() > 0
 
 
 def test_vdb_without_a_field_is_refused(tmp_path, capsys) -> None:
@@ -165,5 +179,5 @@ def test_help_describes_convert_and_set(capsys) -> None:
     with pytest.raises(SystemExit):
         main(["convert", "--help"])
     text = capsys.readouterr().out
-    for opt in ("--voxel-size", "--resolution", "--band", "--rfunc", "--method", "--surface"):
+    for opt in ("--voxel-size", "--resolution", "--band", "--rfunc", "--method", "--surface", "--allow-open"):
         assert opt in text

@@ -201,6 +201,7 @@ def execute(job: Job, out: Path, force: bool = False, executor: Executor | None 
         row["active_voxels"] = manifest["grids"].get("frep", {}).get("active_voxels")
         row["components"] = manifest.get("components", {}).get("count")
         row["outputs"] = len(manifest["outputs"])
+        row["warnings"] = list(manifest.get("warnings", []))
     except Exception as e:  # the job failed; the batch goes on
         status, message = failure_status(e)
         row.update(status=status, message=message)

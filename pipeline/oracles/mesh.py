@@ -49,7 +49,8 @@ class Mesh(Node):
             # SPEC: a mesh that is not closed is bad input; bsp-fields section 4.2 shows what its
             # field looks like, so users can still ask for it explicitly
             raise InputError(f"{params.path}: mesh is not closed (not watertight), so its field has no "
-                             "inside; set allow_open: true to convert it anyway (the field is then not exact)")
+                             "inside; set allow_open: true (frepvdb convert: --allow-open) to convert it anyway (the "
+                             "field is then not exact)")
         self.warnings = list(self.report.warnings)
         if not self.report.winding_consistent:
             mesh = self._repair_winding(mesh)

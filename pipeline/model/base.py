@@ -76,6 +76,13 @@ class Node(ABC):
     #: the node's sign is a function of its children's signs alone (coordinate maps, positive
     #: factors, R-functions, complement): :meth:`sign_proxy` may replace its children
     sign_from_children: ClassVar[bool] = False
+    #: the node's values are finite at every finite point whatever its parameters (a mesh's
+    #: BSP-field or ADF: plane distances of finite, bounded vertices): loading a config does not
+    #: evaluate it to look for NaN or inf (pipeline.job.config.locate_nonfinite)
+    finite_by_construction: ClassVar[bool] = False
+    #: the node's values at a point are finite wherever its children's values at that same point
+    #: are (R-functions under their magnitude control, complement, offset): not evaluated either
+    finite_from_children: ClassVar[bool] = False
 
     def __init__(self, params: Params, where: str = ""):
         self.params = params

@@ -45,6 +45,7 @@ class _SetOp(Node):
     Params = _SetParams
     child_fields = ("of",)
     sign_from_children = True
+    finite_from_children = True  # min / max, or r0 / sardf under the magnitude control
     list_field = "of"
     uses_domain = True  # the job's domain sets the magnitude control of r0 / sardf
 
@@ -95,6 +96,7 @@ class Complement(Node):
 
     child_fields = ("of",)
     sign_from_children = True
+    finite_from_children = True
 
     def field(self, x, y, z, t):
         return -self.params.of.field(x, y, z, t)

@@ -28,6 +28,7 @@ class Mesh(Node):
     """
 
     oracle = True
+    finite_by_construction = True  # vertices are finite and within MAX_MESH_COORDINATE (meshio)
 
     class Params(Params):
         path: str

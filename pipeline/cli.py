@@ -325,7 +325,7 @@ def _mesh_to_vdb(args) -> int:
 
     from pipeline.job.batch import make_executor, run_batch
     from pipeline.job.config import load_jobs, write_config
-    from pipeline.mesh.meshio import MeshError, load_mesh
+    from pipeline.mesh.meshio import MeshError, holding, load_mesh
 
     problem = (_finite_positive("--voxel-size", args.voxel_size) or _finite_positive("--band", args.band)
                or (f"--resolution must be > 0, got {args.resolution}" if args.resolution is not None
@@ -333,15 +333,16 @@ def _mesh_to_vdb(args) -> int:
     if problem:
         return _usage(problem)
     try:
-        mesh, _ = load_mesh(args.input)
+        loaded = load_mesh(args.input)
     except MeshError as e:
         return _usage(str(e))
     args.output.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=".frepvdb-convert-", dir=args.output.parent))
     try:
-        cfg = write_config(convert_config(args, mesh.bounds), Path.cwd(), work, "convert")
+        cfg = write_config(convert_config(args, loaded[0].bounds), Path.cwd(), work, "convert")
         try:
-            jobs = load_jobs(cfg)
+            with holding(args.input, loaded):  # the node takes the mesh read above
+                jobs = load_jobs(cfg)
         except ConfigError as e:  # the mesh's own problem (not closed, ...): the config is ours, not the user's
             return _usage("; ".join(msg for *_, msg in e.problems))
         executor = make_executor("local", None, None, jobs=1)

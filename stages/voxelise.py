@@ -35,13 +35,13 @@ class Params(StageParams):
     band: float = Field(default=3.0, gt=0, le=64, description="narrow-band half-width in voxels")
     block: Literal["auto", 2, 4, 8] = Field(
         default="auto", description="voxels per side of an evaluated block; auto: 8 (one leaf), 4 for models with "
-        "meshes or oracle nodes (pipeline.voxel.voxelise.block_for)")
+        "meshes or oracle nodes, 2 for a mesh much finer than the voxels (pipeline.voxel.voxelise.block_for)")
 
 
 def run(ctx, p: Params) -> dict:
     job, dom = ctx.job, ctx.job.domain
     imin, imax, h = dom.index_min, dom.index_max, dom.voxel_size
-    block = block_for(job.model, p.block)
+    block = block_for(job.model, p.block, h)
     if job.bricks:
         root = root_size_for(dom.dims, block)
         tasks = [(lo, hi, root, p.band, block) for lo, hi in bricks_for(imin, imax, job.bricks, block)]

@@ -460,3 +460,23 @@ def test_memory_estimate_of_a_mesh_uses_the_voxelisers_tape(tmp_path, monkeypatc
     inside = estimate_interior_voxels(mesh, dom, 3.0)
     ball = 4 / 3 * math.pi * 0.8 ** 3 / dom.voxel_size ** 3
     assert 0.7 * ball < inside < 1.3 * ball
+
+
+def test_a_mesh_finer_than_the_voxels_gets_blocks_of_two_with_the_same_grid(tmp_path) -> None:
+    """block_for: 2 where a mesh has more than DENSE_MESH faces per 4 x 4 voxels of surface,
+    else 4 (8 without oracles); an explicit block wins. The written grid does not depend on it."""
+    from pipeline.voxel.voxelise import DENSE_MESH, block_for
+
+    mesh = _mesh_node(tmp_path, 4)  # 5120 faces on ~8 units of area
+    coarse = math.sqrt(2 * DENSE_MESH / mesh.faces_per_area) / 4  # twice the density threshold
+    assert block_for(mesh, "auto", coarse) == 2 and block_for(mesh, "auto", coarse / 2) == 4
+    assert block_for(mesh, 4, coarse) == 4 and block_for(mesh) == 4 and block_for(node("sphere", radius=1)) == 8
+    imin, imax, h = cube_domain(int(2 / coarse) + 1)
+    dense = []
+    for b in (2, 4):
+        res = voxelise(mesh, imin, imax, h, 3.0, block=b)
+        g = frep_to_vdb(res.blocks, res.inside_boxes, "frep", outside_boxes=res.outside_boxes, domain=(imin, imax))
+        a = np.zeros(tuple(imax - imin + 1), np.float32)
+        g.copyToArray(a, tuple(int(v) for v in imin))
+        dense.append((a, g.activeVoxelCount()))
+    assert dense[0][1] == dense[1][1] > 0 and np.array_equal(dense[0][0], dense[1][0])

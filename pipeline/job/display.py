@@ -138,8 +138,8 @@ class BatchProgress:
         """The voxelise block size of the jobs (4 when they differ or none says); once per batch
         (block_for walks each job's model tree)."""
         if self.block is None:
-            blocks = {block_for(j.model, p.block) for j in self.jobs for n, p in getattr(j, "stages", [])
-                      if n == "voxelise"}
+            blocks = {block_for(j.model, p.block, j.domain.voxel_size) for j in self.jobs
+                      for n, p in getattr(j, "stages", []) if n == "voxelise"}
             self.block = blocks.pop() if len(blocks) == 1 else 4
         return self.block
 

@@ -43,6 +43,7 @@ class MeshReport:
     components: int
     genus: list[int]
     volume: float
+    area: float = float("nan")
     warnings: list[str] = field(default_factory=list)
 
 
@@ -198,6 +199,7 @@ def check_mesh(mesh: trimesh.Trimesh, path: str = "<mesh>") -> MeshReport:
         components=len(genus),
         genus=genus,
         volume=float(mesh.volume) if watertight else float("nan"),
+        area=float(mesh.area_faces.sum()),
     )
     if not watertight:
         report.warnings.append(f"{path}: mesh is not closed (not watertight); the field is not exact")

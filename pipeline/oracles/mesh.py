@@ -125,6 +125,13 @@ class Mesh(Node):
         twin.impl = self.impl.with_rfunc("min_max")
         return twin
 
+    @property
+    def faces_per_area(self) -> float:
+        """Faces per unit of surface area: a mesh finer than the voxels is voxelised in smaller
+        blocks (pipeline.voxel.voxelise.block_for)."""
+        r = self.report
+        return r.faces / r.area if r.area > 0 else 0.0
+
     def describe(self) -> dict:
         """Manifest entry: the mesh checks and the BSP-tree counts (Table 1 of bsp-fields)."""
         r = self.report

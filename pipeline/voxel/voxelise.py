@@ -473,22 +473,33 @@ def _set_proxies(values, known, bg):
             flat_v[n] = bg if flat_v[n] > 0 else -bg
 
 
-def block_for(model: Node, block: int | str = "auto") -> int:
+def block_for(model: Node, block: int | str = "auto", h: float | None = None) -> int:
     """The edge of the evaluated blocks: ``block`` itself, or for ``"auto"`` 8 when every node
     of the model is a formula the tape records, 4 when one is an oracle (a mesh, a grid, a
-    solved field: ``Node.oracle``) or without the tape; from the node types, nothing is traced.
+    solved field: ``Node.oracle``) or without the tape, 2 when a mesh at voxel size ``h`` has
+    more than DENSE_MESH faces per 4 x 4 voxels of its surface; from the node types and the
+    meshes' face counts and areas, nothing is traced.
 
     With 8, a block is one leaf: the octree stops a level earlier (at 512^3 the demo's
     enumeration took 0.13 s with 4 and 0.025 s with 8), and a clause of one coordinate runs 8
     times per 512 voxels (:data:`pipeline.model.tape.SEPARABLE`); more voxels are evaluated
     (+24 % for the demo) but the stage was 1.3-2.3x faster for every FRep model measured
     (docs/performance.md, session 22). A mesh clause costs more per voxel, and there 4 was
-    2-12 % faster; the other oracles run node by node in NumPy, where evaluation dominates."""
+    2-12 % faster; the other oracles run node by node in NumPy, where evaluation dominates.
+    A block's mesh clause runs the part of the tree its bounds leave, so a mesh finer than the
+    voxels makes every voxel pay for the faces of a larger block: for a 1.3M-face mesh at
+    256^3 (~145 faces per 4 x 4 voxels) blocks of 2 took the stage from 17.9-18.9 s to 12.6 s,
+    at 512^3 (~36) 13.2 -> 12.0 s; 327k faces at 256^3 (~36): the same; 82k faces (~9): 0.7 ->
+    1.4 s, and every CGAL mesh 2-4x slower with 2."""
     if block != "auto":
         return int(block)
     if not USE_TAPE or any(node.oracle for node in model.walk()):
-        return 4
+        dense = max((getattr(node, "faces_per_area", 0.0) for node in model.walk()), default=0.0)
+        return 2 if h is not None and dense * (4.0 * h) ** 2 > DENSE_MESH else 4
     return 8
+
+
+DENSE_MESH = 100.0  # faces per 4 x 4 voxels of a mesh's surface above which blocks of 2 pay
 
 
 def voxelise(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: float = 3.0,

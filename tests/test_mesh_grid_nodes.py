@@ -175,3 +175,15 @@ def test_loading_a_config_does_not_evaluate_the_mesh_for_nan(tmp_path, box_mesh,
     with pytest.raises(Exception) as bad:
         load_jobs(cfg)
     assert "model.union[1].expr: the field is not a finite number" in str(bad.value)
+
+
+def test_set_operations_are_finite_from_children_only_under_the_magnitude_control() -> None:
+    """r0 of finite values overflows without the domain's magnitude control (a tree built in
+    code): the NaN check then evaluates the set operation; min_max is always finite."""
+    from pipeline.model.operations import Union
+
+    s = node("sphere", radius=1.0)
+    assert not Union(Union.Params.model_validate({"of": [s, s], "rfunc": "r0"})).finite_from_children
+    assert Union(Union.Params.model_validate({"of": [s, s], "rfunc": "min_max"})).finite_from_children
+    domain = type("D", (), {"bounds": ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))})()
+    assert Union(Union.Params.model_validate({"of": [s, s], "rfunc": "r0"}), domain=domain).finite_from_children

@@ -81,7 +81,7 @@ class Node(ABC):
     #: evaluate it to look for NaN or inf (pipeline.job.config.locate_nonfinite)
     finite_by_construction: ClassVar[bool] = False
     #: the node's values at a point are finite wherever its children's values at that same point
-    #: are (R-functions under their magnitude control, complement, offset): not evaluated either
+    #: are (R-functions under their magnitude control, complement): not evaluated either
     finite_from_children: ClassVar[bool] = False
 
     def __init__(self, params: Params, where: str = ""):

@@ -45,7 +45,6 @@ class _SetOp(Node):
     Params = _SetParams
     child_fields = ("of",)
     sign_from_children = True
-    finite_from_children = True  # min / max, or r0 / sardf under the magnitude control
     list_field = "of"
     uses_domain = True  # the job's domain sets the magnitude control of r0 / sardf
 
@@ -55,6 +54,12 @@ class _SetOp(Node):
 
     def _fields(self, x, y, z, t):
         return [c.field(x, y, z, t) for c in self.params.of]
+
+    @property
+    def finite_from_children(self) -> bool:  # type: ignore[override]
+        """min / max of finite values; r0 / sardf under the magnitude control (a node built
+        without a domain has none: sqrt(x^2 + y^2) of finite values can overflow there)."""
+        return self.params.rfunc == "min_max" or bool(np.isfinite(self.scale))
 
 
 @register("union")

@@ -184,16 +184,23 @@ def cmd_collide(args) -> int:
     return EXIT_OK
 
 
-def cmd_run(args) -> int:
+def _say_first_run() -> None:
+    """On a terminal, before any model is built (that compiles already): the first run of these
+    sources compiles the kernels for minutes."""
     from pipeline import first_run_notice
+
+    notice = first_run_notice()
+    if notice and sys.stderr.isatty():
+        print(notice, file=sys.stderr)
+
+
+def cmd_run(args) -> int:
     from pipeline.job.batch import make_executor, run_batch
     from pipeline.job.config import load_jobs
     from pipeline.job.display import BatchProgress
     from pipeline.job.runner import model_warnings
 
-    notice = first_run_notice()
-    if notice and sys.stderr.isatty():  # before the models are built: that compiles already
-        print(notice, file=sys.stderr)
+    _say_first_run()
     status = EXIT_OK
     jobs = []
     for cfg in args.configs:
@@ -332,6 +339,7 @@ def _mesh_to_vdb(args) -> int:
                    and args.resolution <= 0 else None))
     if problem:
         return _usage(problem)
+    _say_first_run()
     try:
         loaded = load_mesh(args.input)
     except MeshError as e:

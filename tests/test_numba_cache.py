@@ -78,12 +78,9 @@ def _parallel_callers(trees: dict[str, ast.Module]) -> list[str]:
         imported[module] = {a.asname or a.name: f"{n.module}.{a.name}" for n in ast.walk(tree)
                             if isinstance(n, ast.ImportFrom) and n.module and n.module.startswith("pipeline.")
                             for a in n.names}
-        for fn in (n for n in tree.body if isinstance(n, ast.FunctionDef)):
-            decorators = [ast.unparse(d) for d in fn.decorator_list]
-            if any("jit" in d for d in decorators):
-                compiled.add(f"{module}.{fn.name}")
-                if any("parallel=True" in d for d in decorators):
-                    parallel.add(f"{module}.{fn.name}")
+        compiled |= {f"{module}.{f}" for f in _compiled(tree)}
+        parallel |= {f"{module}.{n.name}" for n in tree.body if isinstance(n, ast.FunctionDef)
+                     and any("parallel=True" in ast.unparse(d) for d in n.decorator_list)}
     found = []
     for name, tree in trees.items():
         module = "pipeline." + name.removesuffix(".py").replace("/", ".")

@@ -117,7 +117,7 @@ def _compact(used: np.ndarray) -> tuple[np.ndarray, int]:
 # take its result from Python. A cached caller compiled in a process that loaded its parallel
 # callee from the cache crashes when it is loaded later (numba issues #8578, #4807: the
 # gufunc's native name differs between the processes); merge_kernel did, in `frepvdb convert
-# x.vdb x.stl` after any run had written a .vtp (tests/test_meshout.py).
+# x.vdb x.stl` after any run had written a .vtp (tests/test_numba_cache.py).
 
 
 def weld_kernel(points: np.ndarray, bits: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -127,12 +127,12 @@ def weld_kernel(points: np.ndarray, bits: np.ndarray, triangles: np.ndarray) -> 
     used points and the output rows are counted in order, so the result does not depend on the
     threads."""
     rep, first = unique_rows_first(bits)
-    return _weld(points, triangles, rep, first)
+    return _weld_triangles(points, triangles, rep, first)
 
 
 @njit(cache=True, parallel=True)
-def _weld(points: np.ndarray, triangles: np.ndarray, rep: np.ndarray,
-          first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _weld_triangles(points: np.ndarray, triangles: np.ndarray, rep: np.ndarray,
+                    first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`weld_kernel` after the merge of the points."""
     m = triangles.shape[0]
     keep = np.zeros(m, np.bool_)
@@ -409,11 +409,11 @@ def merge_kernel(bits: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, n
     vertex (zero-area ones with three distinct vertices stay) and unused points. Returns (the
     index of each kept point's first occurrence, triangles over the kept points)."""
     rep, first = unique_rows_first(bits)
-    return _merge(triangles, rep, first)
+    return _merge_triangles(triangles, rep, first)
 
 
 @njit(cache=True)
-def _merge(triangles: np.ndarray, rep: np.ndarray, first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _merge_triangles(triangles: np.ndarray, rep: np.ndarray, first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`merge_kernel` after the merge of the points."""
     m = triangles.shape[0]
     keep = np.zeros(m, np.bool_)

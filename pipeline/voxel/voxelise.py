@@ -506,16 +506,23 @@ def voxelise(model: Node, imin: np.ndarray, imax: np.ndarray, h: float, band: fl
              block: int = 4, t: float = 0.0, progress: Callable[[str], None] | None = None) -> Voxelised:
     """Voxelise ``model`` over the index box imin..imax: sparse narrow band plus inside tiles."""
     t0 = time.perf_counter()
-    tape = compile_model(model, t) if USE_TAPE else None
+    work, tape = _working_model(model, t)
+    # the blocks from the sign proxy, the model's values in the reach
+    refine = exact_in_reach(model, h, t) if work is not model else None
     if tape is not None:
-        return voxelise_tape(tape, imin, imax, h, band, block, progress, t0)
-    refine = exact_in_reach(model, h, t)
-    if refine is not None:  # the blocks from the sign proxy, the model's values in the reach
+        return voxelise_tape(tape, imin, imax, h, band, block, progress, t0, refine)
+    return assemble(sample_blocks(work, imin, imax, h, band, block, t, progress), imin, imax, h, band, refine)
+
+
+def _working_model(model: Node, t: float) -> tuple[Node, Tape | None]:
+    """What :func:`voxelise` enumerates and evaluates the blocks with, and its tape (None where it
+    does not lower to one): the model, or its sign proxy where the model has no tape of its own
+    and a cheaper proxy (an r0 or sardf mesh)."""
+    tape = compile_model(model, t) if USE_TAPE else None
+    if tape is None and model.sign_proxy() is not model:
         model = model.sign_proxy()
         tape = compile_model(model, t) if USE_TAPE else None
-        if tape is not None:
-            return voxelise_tape(tape, imin, imax, h, band, block, progress, t0, refine)
-    return assemble(sample_blocks(model, imin, imax, h, band, block, t, progress), imin, imax, h, band, refine)
+    return model, tape
 
 
 Refine = Callable[[BlockGrid, np.ndarray, float], tuple[dict, int]]
@@ -763,20 +770,10 @@ def _coarse_cells(model: Node, domain, band: float, t: float) -> CellLevels:
     def enough(size: int, ambiguous: int) -> bool:
         return size <= first and ambiguous >= ESTIMATE_CELLS
 
-    tape = _enumeration_tape(model, t)
+    work, tape = _working_model(model, t)
     if tape is not None:
         lv, _ = enumerate_cells_tape(tape, imin, imax, domain.voxel_size, band, 8, root_size=root, stop_size=stop,
                                      stop_after=enough)
         return lv
-    return enumerate_cells(model, imin, imax, domain.voxel_size, band, 8, t, stop_size=stop, root_size=root,
+    return enumerate_cells(work, imin, imax, domain.voxel_size, band, 8, t, stop_size=stop, root_size=root,
                            stop_after=enough)
-
-
-def _enumeration_tape(model: Node, t: float) -> Tape | None:
-    """The tape :func:`voxelise` enumerates the cells with: the model's, or its sign proxy's."""
-    if not USE_TAPE:
-        return None
-    tape = compile_model(model, t)
-    if tape is None and model.sign_proxy() is not model:
-        tape = compile_model(model.sign_proxy(), t)
-    return tape

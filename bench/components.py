@@ -10,9 +10,13 @@
    driver's label unification; results checked equal.
 4. (issue 14) Sparse detection vs dense evaluation of the compiled model at the cell centres +
    ``cc3d.connected_components``, depths 9 and 10 (512^3, 1024^3 cells), each in a fresh process.
+5. (issues 13, 14) Lattices: a ``union`` (min_max) of N random spheres (radius 0.03-0.05 in
+   [-1, 1]^3, as bench/lattice.py), N = 1 .. 10^4, depths 7 and 8: the detection with per-cell
+   tapes, the same descent over the whole tape (``CellTapes`` off: the code before session 29),
+   and dense evaluation + cc3d; runs over ``--timeout`` seconds (default 300) are stopped.
 
 Run: ``.venv/bin/python bench/components.py`` (prints Markdown tables; ``--bricked``: table 3
-only, ``--cc3d``: table 4 only).
+only, ``--cc3d``: table 4 only, ``--lattice [--timeout S]``: table 5 only).
 """
 
 from __future__ import annotations
@@ -38,6 +42,20 @@ NOISE = {"expr": "81 - 100*x^2 - 100*y^2 - 100*z^2 + (3.8*sin(15*x) + 1.6*sin(11
                  " * (3.8*sin(15*z) + 2.6*sin(11.1*x + 1.1*sin(15*x)))"}
 MODELS = {"two spheres": (TWO_SPHERES, -1.0, 2.0), "demo (Fig. 3)": (DEMO, -1.25, 2.5),
           "solid noise (Fig. 4)": (NOISE, -1.8, 3.6)}
+
+
+def lattice(n: int, seed: int = 20240613) -> dict:
+    """A union (min_max) of n spheres of radius 0.03-0.05 with centres in [-1, 1]^3."""
+    rng = np.random.default_rng(seed)
+    c, r = rng.uniform(-1, 1, (n, 3)), rng.uniform(0.03, 0.05, n)
+    return {"union": [{"sphere": {"center": [float(v) for v in p], "radius": float(q)}}
+                      for p, q in zip(c, r, strict=True)], "rfunc": "min_max"}
+
+
+def _model(name: str) -> tuple[dict, float, float]:
+    if name.startswith("lattice "):
+        return lattice(int(name.split()[1])), -1.1, 2.2
+    return MODELS[name]
 
 
 def _node(raw: dict):
@@ -152,19 +170,33 @@ def bricked(model, lo: float, size: float, depth: int, brick: int) -> dict:
             "unions": info["cross_face_unions"], "cells": len(whole.tree), "count": whole.count, "same": bool(same)}
 
 
-def _child(kind: str, name: str, depth: int, flag: str = "") -> dict:
+def whole_tape(model, lo: float, size: float, depth: int) -> dict:
+    """:func:`sparse` with the descent's per-cell tapes off: every cell bounded and every corner
+    evaluated with the whole tape."""
+    from pipeline.topology import components as cc
+
+    cc.CellTapes.start = classmethod(lambda cls, model, tape: None)
+    return sparse(model, lo, size, depth)
+
+
+def _child(kind: str, name: str, depth: int, flag: str = "", timeout: float = 3600) -> dict:
     cmd = [sys.executable, __file__, "--one", kind, name, str(depth), flag]
-    out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=3600)
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"error": f"stopped after {timeout:g} s"}
     if out.returncode != 0:
         return {"error": out.stderr.strip().splitlines()[-1] if out.stderr.strip() else "failed"}
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def _one(kind: str, name: str, depth: int, flag: str) -> None:
-    raw, lo, size = MODELS[name]
+    raw, lo, size = _model(name)
     model = _node(raw)
     if kind == "sparse":
         res = sparse(model, lo, size, depth)
+    elif kind == "whole":
+        res = whole_tape(model, lo, size, depth)
     elif kind == "dense":
         res = dense(model, lo, size, depth)
     elif kind == "cc3d":
@@ -198,6 +230,28 @@ def table_sparse_vs_dense(name: str = "two spheres") -> None:
         print(f"| {depth} | {s['cells']} | {s['seconds']:.2f} | {d['seconds']:.2f} | {d['seconds'] / s['seconds']:.1f} "
               f"| {s['peak_mb']:.0f} | {d['peak_mb']:.0f} | {d['peak_mb'] / max(s['peak_mb'], 1):.1f} "
               f"| {s['count']} / {d['count']} |")
+
+
+def table_lattice(counts=(1, 100, 1000, 10_000), depths=(7, 8), timeout: float = 300) -> None:
+    print("\n### Lattices: detection with per-cell tapes vs the whole tape vs dense evaluation + cc3d\n")
+    print("| spheres | depth (cells a side) | per-cell tapes s | whole tape s | whole / per-cell | dense eval + cc3d s "
+          "| dense / per-cell | counts per-cell / whole / dense |")
+    print("|---|---|---|---|---|---|---|---|")
+
+    def cell(r: dict, key: str = "seconds") -> str:
+        return r["error"] if "error" in r else f"{r[key]:.2f}"
+
+    def ratio(r: dict, s: dict) -> str:
+        return "-" if "error" in r or "error" in s else f"{r['seconds'] / s['seconds']:.1f}x"
+
+    for n in counts:
+        for depth in depths:
+            name = f"lattice {n}"
+            s = _child("sparse", name, depth, timeout=timeout)
+            w = _child("whole", name, depth, timeout=timeout)
+            d = _child("cc3d", name, depth, timeout=timeout) if _dense_fits(depth) else {"error": "skipped: memory"}
+            print(f"| {n} | {depth} ({2**depth}) | {cell(s)} | {cell(w)} | {ratio(w, s)} | {cell(d)} | {ratio(d, s)} "
+                  f"| {s.get('count', '-')} / {w.get('count', '-')} / {d.get('count', '-')} |", flush=True)
 
 
 def table_continuation() -> None:
@@ -236,6 +290,9 @@ if __name__ == "__main__":
     else:
         if sys.argv[1:] == ["--bricked"]:
             table_bricked()
+            sys.exit(0)
+        if sys.argv[1:2] == ["--lattice"]:
+            table_lattice(timeout=float(sys.argv[3]) if sys.argv[2:3] == ["--timeout"] else 300)
             sys.exit(0)
         if sys.argv[1:2] == ["--cc3d"]:  # optional depths after it (default 9 10)
             table_cc3d(depths=tuple(int(d) for d in sys.argv[2:]) or (9, 10))

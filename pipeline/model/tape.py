@@ -348,9 +348,75 @@ class Tape:
     def __len__(self) -> int:
         return len(self.op)
 
+    @property
+    def shortens(self) -> bool:
+        """Whether a cell's box can shorten the tape: it has a min / max (or a mesh clause,
+        whose walk can start deeper) for :func:`specialise` to decide."""
+        return bool(np.isin(self.op, (MIN, MAX, BSP)).any())
+
     def counts(self) -> dict[str, int]:
         u, n = np.unique(self.op, return_counts=True)
         return {NAMES[int(k)]: int(v) for k, v in zip(u, n, strict=True)}
+
+
+@dataclass
+class TapePool:
+    """Tapes back to back (the layout of the module docstring), one per cell of a level of a
+    descent (voxelise's, components'): tape i starts at start[i] and has length[i] clauses."""
+
+    start: np.ndarray
+    length: np.ndarray
+    res: np.ndarray
+    op: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    oracle: Oracle  # the mesh clauses' trees, shared by every tape of the pool
+
+    @classmethod
+    def single(cls, tape: Tape) -> TapePool:
+        one = np.zeros(1, np.int64)
+        return cls(one, np.array([len(tape)], np.int64), np.array([tape.res], np.int64), tape.op, tape.a,
+                   tape.b, tape.c, tape.oracle)
+
+    def arrays(self) -> tuple:
+        return self.start, self.length, self.res, self.op, self.a, self.b, self.c
+
+    def with_arrays(self, arrays: tuple) -> TapePool:
+        """A pool of new tapes (specialise's result) over the same oracle."""
+        return TapePool(*arrays, self.oracle)
+
+    @property
+    def max_length(self) -> int:
+        return int(self.length.max()) if len(self.length) else 0
+
+    def evaluate(self, points: np.ndarray, tape_of: np.ndarray | None = None) -> np.ndarray:
+        """Values at points (N, 3), point i by tape ``tape_of[i]`` (None: tape 0). Consecutive
+        points of the same tape are evaluated together, so give the points of a tape together."""
+        p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        if tape_of is None:
+            bs = point_batches(len(p))
+            bt = np.zeros(len(bs) - 1, np.int64)
+        else:  # runs of one tape: cells that share their parent's tape share its start
+            tape_of = np.asarray(tape_of, np.int64)
+            bs = point_batches(len(p), self.start[tape_of])
+            bt = tape_of[bs[:-1]]
+        return eval_points(p, bs, bt, *self.arrays(), *self.oracle.arrays(), max(self.max_length, 1))
+
+    def specialised(self, tape_of: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> TapePool:
+        """Tape i of the result: tape ``tape_of[i]`` shortened to the closed box lo[i]..hi[i]
+        (world, (N, 3)) by the interval decisions of :func:`bound_boxes` and :func:`specialise`:
+        the same values as that tape everywhere in the box, to the bit."""
+        tape_of = np.asarray(tape_of, np.int64)
+        lens = self.length[tape_of]
+        choff = np.concatenate([[0], np.cumsum(lens)[:-1]]).astype(np.int64)
+        choices = np.zeros(int(lens.sum()), np.int32)
+        if len(tape_of):
+            f64 = np.ascontiguousarray
+            bound_boxes(f64(lo, dtype=np.float64), f64(hi, dtype=np.float64), tape_of, *self.arrays(),
+                        *self.oracle.arrays(), max(self.max_length, 1), choff, choices)
+        return self.with_arrays(specialise(np.arange(len(tape_of), dtype=np.int64), tape_of, *self.arrays(),
+                                           choff, choices))
 
 
 def compile_model(model, t: float = 0.0) -> Tape | None:
@@ -396,9 +462,7 @@ def bound_with(tape: Tape, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, 
 
 def evaluate_with(tape: Tape, points: np.ndarray) -> np.ndarray:
     """Values of one tape at points (N, 3)."""
-    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    return eval_points(p, np.zeros(1, np.int64), np.array([len(tape)]), np.array([tape.res]), tape.op, tape.a,
-                       tape.b, tape.c, *tape.oracle.arrays())
+    return TapePool.single(tape).evaluate(points)
 
 
 def eval_blocks_with(tape: Tape, origins: np.ndarray, block: int, h: float) -> np.ndarray:
@@ -798,30 +862,49 @@ def eval_leaves(origins, block, h, tape_of, start, length, res, op, a, b, c, orc
 
 
 @njit(parallel=True, cache=True)
-def eval_points(pts, start, length, res, op, a, b, c, orc, odepth):
-    """Values of tape 0 at points (N, 3), in batches of BATCH; the registers, stacks and
-    coordinate rows allocated once per chunk of batches (per batch they cost as much as the
-    arithmetic of a short tape)."""
+def eval_points(pts, bs, bt, start, length, res, op, a, b, c, orc, odepth, maxlen):
+    """Values at points (N, 3) in batches of at most BATCH points of one tape: batch q is
+    points bs[q]..bs[q + 1] - 1 (``bs`` ends with N), evaluated by tape bt[q] (index into
+    start/length/res). The registers, stacks and coordinate rows allocated once per chunk of
+    batches (per batch they cost as much as the arithmetic of a short tape)."""
     n = pts.shape[0]
     out = np.empty(n)
-    ln = length[0]
-    nb = (n + BATCH - 1) // BATCH
-    per = max(1, (nb + 255) // 256)
+    nb = bt.shape[0]
+    width = 1  # the widest batch: a descent's cells have a few points each, and long tapes at the top
+    for q in range(nb):
+        width = max(width, bs[q + 1] - bs[q])
+    # chunks of batches, each with its own registers: at most 256, and fewer when the registers
+    # of the longest tape are large (a union of 10^4 parts: 110k clauses x 19 points = 17 MB)
+    chunks = max(1, min(nb, 256, (1 << 26) // (8 * max(maxlen, 1) * width)))
+    per = (nb + chunks - 1) // chunks
     for ch in prange((nb + per - 1) // per):
-        reg = np.empty((max(ln, 1), BATCH))
+        reg = np.empty((max(maxlen, 1), width))
         sj = np.empty((2, odepth + 2), np.int64)
         sv = np.empty((2, odepth + 2))
         px, py, pz = np.empty(BATCH), np.empty(BATCH), np.empty(BATCH)
         none_n, none_f, none_i, none_r = np.empty((0, 3)), np.empty(0), np.empty(0, np.int64), np.empty((0, BATCH))
         for q in range(ch * per, min(nb, (ch + 1) * per)):
-            lo = q * BATCH
-            m = min(BATCH, n - lo)
+            lo = bs[q]
+            m = bs[q + 1] - lo
+            tp = bt[q]
             for v in range(m):
                 px[v], py[v], pz[v] = pts[lo + v, 0], pts[lo + v, 1], pts[lo + v, 2]
-            vals = _run_batch(op, a, b, c, start[0], ln, res[0], px, py, pz, reg, m, orc, sj, sv, False, none_n,
-                              none_f, none_i, none_i, none_i, none_r, none_f, 0, none_i)
+            vals = _run_batch(op, a, b, c, start[tp], length[tp], res[tp], px, py, pz, reg, m, orc, sj, sv, False,
+                              none_n, none_f, none_i, none_i, none_i, none_r, none_f, 0, none_i)
             out[lo:lo + m] = vals[:m]
     return out
+
+
+def point_batches(n: int, keys: np.ndarray | None = None) -> np.ndarray:
+    """``bs`` of :func:`eval_points` for n points: each run of equal ``keys`` (None: all n
+    points) cut into batches of at most BATCH points."""
+    if keys is None:
+        return np.append(np.arange(0, n, BATCH, dtype=np.int64), np.int64(n))
+    runs = np.concatenate([[0], np.flatnonzero(keys[1:] != keys[:-1]) + 1, [n]]).astype(np.int64)
+    per_run = (np.diff(runs) + BATCH - 1) // BATCH
+    first = np.repeat(runs[:-1], per_run)
+    within = np.arange(int(per_run.sum()), dtype=np.int64) - np.repeat(np.cumsum(per_run) - per_run, per_run)
+    return np.append(first + within * BATCH, np.int64(n))
 
 
 BATCH = 128  # points per register row of eval_points (64 -> 128: 0.16 -> 0.11 s for 3M points of the demo)

@@ -536,23 +536,26 @@ def _form_box(lo, hi, op, a, b, c, F, orc, sj, sv):
 
 
 @_jit(parallel=True)
-def _affine_pass(lo, hi, op, a, b, c, res, orc, odepth):
-    """(flo, fhi) of the tape's result over each box lo[q]..hi[q]; boxes in chunks of 64 per
-    task, the (len(op), 5) forms and the mesh walk's stacks allocated once per chunk."""
+def _affine_pass(lo, hi, tape_of, start, length, res, op, a, b, c, orc, odepth, maxlen):
+    """(flo, fhi) of box q's tape (tape_of[q], into start/length/res) over lo[q]..hi[q]; boxes
+    in chunks of 64 per task (one per task when there are few: the top levels of a descent,
+    whose tapes are long), the (maxlen, 5) forms and the mesh walk's stacks allocated once per
+    chunk."""
     n = lo.shape[0]
     flo = np.empty(n)
     fhi = np.empty(n)
-    ln = max(op.shape[0], 1)
-    per = 64
+    per = 64 if n >= 1024 else 1
     for ch in prange((n + per - 1) // per):
-        F = np.empty((ln, 5))
+        F = np.empty((max(maxlen, 1), 5))
         sj = np.empty((3, odepth + 2), np.int64)
         sv = np.empty((4, odepth + 2))
         for q in range(ch * per, min(n, (ch + 1) * per)):
-            _form_box(lo[q], hi[q], op, a, b, c, F, orc, sj, sv)
-            r = _radius(F[res, 1], F[res, 2], F[res, 3], F[res, 4])
-            flo[q] = _down(F[res, 0] - r)
-            fhi[q] = _up(F[res, 0] + r)
+            tp = tape_of[q]
+            s, e, r = start[tp], start[tp] + length[tp], res[tp]
+            _form_box(lo[q], hi[q], op[s:e], a[s:e], b[s:e], c[s:e], F, orc, sj, sv)
+            rad = _radius(F[r, 1], F[r, 2], F[r, 3], F[r, 4])
+            flo[q] = _down(F[r, 0] - rad)
+            fhi[q] = _up(F[r, 0] + rad)
     return flo, fhi
 
 
@@ -566,18 +569,23 @@ def _forms_one(lo, hi, op, a, b, c, orc, odepth):
     return F
 
 
-def affine_bounds(tape: _tp.Tape, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rigorous (flo, fhi) of the tape's field over each box lo..hi (B, 3) by revised affine
-    arithmetic: ``model.bound(lo, hi, t)`` for ``tape = compile_model(model, t)``.
+def affine_bounds(tape: _tp.Tape | _tp.TapePool, lo: np.ndarray, hi: np.ndarray,
+                  tape_of: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Rigorous (flo, fhi) of the field over each box lo..hi (B, 3) by revised affine
+    arithmetic: ``model.bound(lo, hi, t)`` for ``tape = compile_model(model, t)``; or, for a
+    pool of tapes (a descent's cells, :class:`pipeline.model.tape.TapePool`), of box q's tape
+    ``tape_of[q]`` (None: tape 0).
 
-    Memory: the two (B,) results and the forms of one chunk of 64 boxes per thread (len(tape) x 5
-    floats), whatever B is."""
+    Memory: the two (B,) results and the forms of one chunk of 64 boxes per thread (the longest
+    tape x 5 floats), whatever B is."""
     lo = np.ascontiguousarray(lo, dtype=np.float64).reshape(-1, 3)
     hi = np.ascontiguousarray(hi, dtype=np.float64).reshape(-1, 3)
     if lo.shape != hi.shape:
         raise ValueError(f"lo {lo.shape} and hi {hi.shape} differ")
-    orc, depth = tape.oracle.arrays()
-    return _affine_pass(lo, hi, tape.op, tape.a, tape.b, tape.c, np.int64(tape.res), orc, depth)
+    pool = tape if isinstance(tape, _tp.TapePool) else _tp.TapePool.single(tape)
+    tape_of = np.zeros(len(lo), np.int64) if tape_of is None else np.ascontiguousarray(tape_of, dtype=np.int64)
+    orc, depth = pool.oracle.arrays()
+    return _affine_pass(lo, hi, tape_of, *pool.arrays(), orc, depth, max(pool.max_length, 1))
 
 
 def clause_forms(tape: _tp.Tape, lo, hi) -> np.ndarray:

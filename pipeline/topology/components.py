@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from pipeline.field.rkernels import r0_and
 from pipeline.model import ops
 from pipeline.model.base import Node
-from pipeline.model.tape import compile_model, evaluate_with
+from pipeline.model.tape import TapePool, compile_model, evaluate_with
 from pipeline.model.tape_affine import affine_bounds
 from pipeline.sparse.access import ALL27, OWN_ROWS, block_neighbours27, load_ghosts
 from pipeline.sparse.grid import KEY_BITS, KEY_OFFSET, LEAF, key3, key_of
@@ -425,6 +425,53 @@ def _level_neighbours(keys, rows, off, levels, coarse, c, lv, i0, i1):
 # --- Algorithm 1: adaptive spatial continuation --------------------------------------------------
 
 
+@dataclass
+class CellTapes:
+    """The shortened tape of every cell of a level of Algorithm 1's descent: per-cell
+    specialisation, as in voxelise's descent (pipeline.voxel.voxelise.enumerate_cells_tape).
+    Before its children are bounded and their corners evaluated, a parent's tape is shortened
+    to the parent's own closed box (pipeline.model.tape.TapePool.specialised: the min / max
+    operands that the interval bounds prove irrelevant there are removed, so the values are the
+    same to the bit everywhere in the box). For a model of many parts this is the difference
+    between bounding every part and a few per cell; the revised affine form of the shortened
+    tape is also tighter (an affine min / max of overlapping forms adds error, and a union of
+    1,000 spheres folded into a tree of them had no cell rejected above the finest levels)."""
+
+    pool: TapePool
+    tape_of: np.ndarray  # (cells,) the tape of each cell of the level, into pool
+
+    @classmethod
+    def start(cls, model: Node, tape) -> CellTapes | None:
+        """The root cell's tape; None when there is nothing to shorten (no tape, a model with
+        a bound of its own, or a tape without min / max: an r0 or sardf model)."""
+        if tape is None or _own_bound(model) or not tape.shortens:
+            return None
+        return cls(TapePool.single(tape), np.zeros(1, np.int64))
+
+    def take(self, which: np.ndarray) -> CellTapes:
+        return CellTapes(self.pool, self.tape_of[which])
+
+    def affine(self, lo: np.ndarray, hi: np.ndarray, which: np.ndarray | None = None):
+        """Revised affine bounds of the cells (those of ``which``) over their boxes lo..hi."""
+        return affine_bounds(self.pool, lo, hi, self.tape_of if which is None else self.tape_of[which])
+
+    def specialised(self, which: np.ndarray, lo: np.ndarray, hi: np.ndarray, st: dict) -> CellTapes:
+        """The tapes of the cells of ``which`` shortened to their boxes lo..hi: tape i of the
+        result is that of the i-th such cell."""
+        pool = self.pool.specialised(self.tape_of[which], lo, hi)
+        if st["levels"] and len(pool.length):
+            st["levels"][-1]["mean_tape"] = round(float(pool.length.mean()), 2)
+        return CellTapes(pool, np.arange(len(lo), dtype=np.int64))
+
+    def evaluate(self, points: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Values at points, point i by the tape of cell ``rows[i]`` (in that cell's box)."""
+        return self.pool.evaluate(points, self.tape_of[rows])
+
+    def of_children(self, rows: np.ndarray) -> CellTapes:
+        """The children's tapes: those of their parents, the cells ``rows``."""
+        return CellTapes(self.pool, self.tape_of[rows])
+
+
 class _CornerCache:
     """Field values at lattice points of the finest level, evaluated once (eq. 3 control range)."""
 
@@ -435,9 +482,17 @@ class _CornerCache:
         self.evaluations = 0
         self.tape = compile_model(model, t)  # the compiled model; None: the node tree evaluates
 
-    def evaluate(self, points: np.ndarray) -> np.ndarray:
-        """f at world points (N,3), NaN as -inf (outside), by the tape when the model has one."""
-        fv = evaluate_with(self.tape, points) if self.tape is not None else self.model.evaluate(points, self.t)
+    def evaluate(self, points: np.ndarray, cells: CellTapes | None = None, rows: np.ndarray | None = None
+                 ) -> np.ndarray:
+        """f at world points (N,3), NaN as -inf (outside): point i by the shortened tape of cell
+        ``rows[i]`` of ``cells`` (the point lies in that cell's closed box; give the points of a
+        cell together), else by the model's tape when it has one, else by the node tree."""
+        if cells is not None:
+            fv = cells.evaluate(points, rows)
+        elif self.tape is not None:
+            fv = evaluate_with(self.tape, points)
+        else:
+            fv = self.model.evaluate(points, self.t)
         self.evaluations += len(points)
         return np.where(np.isnan(fv), -np.inf, fv)
 
@@ -512,17 +567,19 @@ _SHARER_D, _SHARER_OF, _SHARER_IDX = _earlier_sharers()
 CHILD_CHUNK = 1 << 16  # parents per evaluation of their new lattice points (19 points each)
 
 
-def _child_corner_signs(cache: _CornerCache, parents: np.ndarray, psigns: np.ndarray, scale: int) -> np.ndarray:
+def _child_corner_signs(cache: _CornerCache, parents: np.ndarray, psigns: np.ndarray, scale: int,
+                        tapes: CellTapes | None = None) -> np.ndarray:
     """Corner signs of the 8 children of every parent, (P*8,) bytes in child order: the
     parent's corners are reused and the 19 new lattice points per parent are evaluated once
     each. A point shared by neighbouring parents (on a common face or edge: half of them at
     1024^3) belongs to the first of them in key order, which evaluates it; the others copy its
     sign. The parents come in key order (every level of the descent does); otherwise each
-    parent evaluates all its 19 points."""
+    parent evaluates all its 19 points. ``tapes``: parent i's shortened tape is tape i (all
+    its 19 points lie in its box)."""
     parents = np.ascontiguousarray(parents, dtype=np.int64)
     keys = pack(parents)
     if len(keys) > 1 and not np.all(keys[1:] > keys[:-1]):
-        return _child_corner_signs_each(cache, parents, psigns, scale)
+        return _child_corner_signs_each(cache, parents, psigns, scale, tapes)
     sharers = _sharer_rows(parents, keys, _SHARER_D)
     first = _first_sharers(sharers, _SHARER_OF)
     origin, step = np.asarray(cache.origin, np.float64), float(cache.step)
@@ -531,14 +588,14 @@ def _child_corner_signs(cache: _CornerCache, parents: np.ndarray, psigns: np.nda
         e = min(s + CHILD_CHUNK, len(parents))
         rows, cols = np.nonzero(first[s:e] < 0)
         pts = _lattice_points_at(parents, rows + s, cols, _NEW19, int(scale), origin, step)
-        pos[rows + s, cols] = cache.evaluate(pts) > 0
+        pos[rows + s, cols] = cache.evaluate(pts, tapes, rows + s) > 0
     _copy_shared(pos, first, sharers, _SHARER_OF, _SHARER_IDX)
     return _assemble_children(psigns, pos, _FROM_PARENT, np.flatnonzero(_EVEN27), np.flatnonzero(~_EVEN27),
                               _CHILD_IDX)
 
 
 def _child_corner_signs_each(cache: _CornerCache, parents: np.ndarray, psigns: np.ndarray,
-                             scale: int) -> np.ndarray:
+                             scale: int, tapes: CellTapes | None = None) -> np.ndarray:
     """:func:`_child_corner_signs` with every parent evaluating its 19 points (any order)."""
     out = np.empty(len(parents) * 8, np.uint8)
     parents = np.ascontiguousarray(parents, dtype=np.int64)
@@ -547,7 +604,7 @@ def _child_corner_signs_each(cache: _CornerCache, parents: np.ndarray, psigns: n
         e = min(s + CHILD_CHUNK, len(parents))
         rows, cols = np.divmod(np.arange(19 * (e - s), dtype=np.int64), 19)
         pts = _lattice_points_at(parents, rows + s, cols, _NEW19, int(scale), origin, step)
-        pos = (cache.evaluate(pts) > 0).reshape(e - s, 19)
+        pos = (cache.evaluate(pts, tapes, rows + s) > 0).reshape(e - s, 19)
         out[8 * s:8 * e] = _assemble_children(psigns[s:e], pos, _FROM_PARENT, np.flatnonzero(_EVEN27),
                                               np.flatnonzero(~_EVEN27), _CHILD_IDX)
     return out
@@ -686,24 +743,28 @@ def _children(coords: np.ndarray, which: np.ndarray | None = None) -> np.ndarray
     return _child_coords(coords, rows, _CORNERS)
 
 
-def _sorted_children(parents: np.ndarray, csigns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The 8 children of key-sorted parents in key order, and their corner signs (``csigns``:
+def _sorted_children(parents: np.ndarray, csigns: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 8 children of key-sorted parents in key order, their parents' rows, and their
+    corner signs (``csigns``:
     parent-major, corner order, as :func:`_child_corner_signs` makes them; empty: none). The
     descent starts from one cell and keeps subsets, so every level comes sorted and the finest
     cells need no sort (an argsort of the ~10M finest keys cost 0.5 s at 1024^3, twice)."""
     if len(parents) == 0:
-        return np.zeros((0, 3), np.int64), csigns[:0]
+        return np.zeros((0, 3), np.int64), csigns[:0], np.zeros(0, np.int64)
     x = parents[:, 0]
     starts = np.flatnonzero(np.concatenate([[True], x[1:] != x[:-1], [True]])).astype(np.int64)
-    return _children_in_key_order(parents, csigns, starts)
+    cells, signs, rows = _children_in_key_order(parents, csigns, starts)
+    return cells, signs, rows
 
 
 @njit(cache=True, parallel=True)
 def _children_in_key_order(parents, csigns, starts):
     """Children of the sorted parents, x-run by x-run (run [i, j) fills rows 8i..8j): per child
-    x, the parents' y-runs, per child y, each parent's two children in z."""
+    x, the parents' y-runs, per child y, each parent's two children in z. Returns the children,
+    their corner signs and their parents' rows."""
     n = parents.shape[0]
     out = np.empty((8 * n, 3), np.int64)
+    pout = np.empty(8 * n, np.int64)
     sout = np.empty(8 * n if csigns.shape[0] else 0, np.uint8)
     for r in numba.prange(starts.shape[0] - 1):
         i, j = starts[r], starts[r + 1]
@@ -720,11 +781,12 @@ def _children_in_key_order(parents, csigns, starts):
                             out[o, 0] = 2 * parents[p, 0] + dx
                             out[o, 1] = 2 * parents[p, 1] + dy
                             out[o, 2] = 2 * parents[p, 2] + dz
+                            pout[o] = p
                             if sout.shape[0]:
                                 sout[o] = csigns[8 * p + 4 * dx + 2 * dy + dz]
                             o += 1
                 u = v
-    return out, sout
+    return out, sout, pout
 
 
 @njit(cache=True, parallel=True)
@@ -851,6 +913,7 @@ def enumerate_in_brick(model: Node, origin, size: float, depth: int, t: float = 
     origin = np.asarray(origin, float)
     rlo, rhi = (np.full(3, -np.inf), np.full(3, np.inf)) if region is None else map(np.asarray, region)
     cache = _CornerCache(model, origin, size / 2**depth, t)
+    tapes = CellTapes.start(model, cache.tape)  # None: the model is bounded and evaluated as a whole
     st = {"affine_tests": 0, "affine_skipped": 0, "cells_visited": 0, "continuation_cells": 0, "levels": []}
     kept_l, kept_c, kept_k, kept_p = [], [], [], []
     cells = np.zeros((1, 3), np.int64)
@@ -864,23 +927,30 @@ def enumerate_in_brick(model: Node, origin, size: float, depth: int, t: float = 
         if not ok.all():  # (at the finest level of the demo at 1024^3: 10M cells, all in the region)
             cells = cells[ok]
             signs = signs[ok] if continuation else None
+            tapes = tapes.take(ok) if tapes is not None else None
         if len(cells) == 0:
             break
         st["cells_visited"] += len(cells)
         if lv == depth:
             finest, escaped = _finest(model, cells, signs, origin, size, depth, t, cache, st, continuation,
-                                      (rlo, rhi), brick)
+                                      (rlo, rhi), brick, tapes)
             st["levels"].append({"level": lv, "cells": int(len(cells))})
             break
-        inside, split = _classify(model, cells, signs, lv, origin, size, t, st)
+        inside, split = _classify(model, cells, signs, lv, origin, size, t, st, tapes)
         kept_l.append(np.full(int(inside.sum()), lv)), kept_c.append(cells[inside])
         kept_k.append(np.full(int(inside.sum()), INSIDE, np.int8)), kept_p.append(np.ones(int(inside.sum())))
         st["levels"].append({"level": lv, "cells": int(len(cells)), "inside": int(inside.sum()),
                              "subdivided": int(split.sum())})
         parents = np.ascontiguousarray(cells[split], dtype=np.int64)
-        csigns = (_child_corner_signs(cache, parents, signs[split], 1 << (depth - lv - 1)) if continuation
+        if tapes is not None and lv < depth - 1:  # each parent's tape shortened to its own box
+            c = size / 2**lv
+            tapes = tapes.specialised(split, origin + parents * c, origin + (parents + 1) * c, st)
+        elif tapes is not None:  # the finest cells need only their corners: no shortening pays for itself there
+            tapes = tapes.take(split)
+        csigns = (_child_corner_signs(cache, parents, signs[split], 1 << (depth - lv - 1), tapes) if continuation
                   else np.zeros(0, np.uint8))
-        cells, signs = _sorted_children(parents, csigns)
+        cells, signs, rows = _sorted_children(parents, csigns)
+        tapes = tapes.of_children(rows) if tapes is not None else None
         signs = signs if continuation else None
     st["corner_evaluations"] = cache.evaluations
     coarse = (_cat(kept_l, (0,), np.int64), _cat(kept_c, (0, 3), np.int64), _cat(kept_k, (0,), np.int8),
@@ -902,15 +972,17 @@ def _cat(parts: list, shape: tuple, dtype) -> np.ndarray:
     return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(shape, dtype)
 
 
-def _classify(model, cells, signs, lv, origin, size, t, st) -> tuple[np.ndarray, np.ndarray]:
+def _classify(model, cells, signs, lv, origin, size, t, st, tapes: CellTapes | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
     """Coarse level: (inside, subdivide) masks. A sign change on the corners proves a zero
-    (control range, eq. 3) and skips the affine test; other cells are bounded by RAA."""
+    (control range, eq. 3) and skips the affine test; other cells are bounded by RAA, each with
+    its own shortened tape when ``tapes`` are given."""
     # mixed corner signs (bits neither all clear nor all set) prove a zero
     known = (signs != 0) & (signs != 255) if signs is not None else np.zeros(len(cells), bool)
     test = ~known
     c = size / 2**lv
     lo = origin + cells[test] * c
-    flo, fhi = _affine(model, lo, lo + c, t)
+    flo, fhi = _affine(model, lo, lo + c, t) if tapes is None else tapes.affine(lo, lo + c, test)
     st["affine_tests"] += int(test.sum())
     st["affine_skipped"] += int(known.sum())
     inside = np.zeros(len(cells), bool)
@@ -921,14 +993,14 @@ def _classify(model, cells, signs, lv, origin, size, t, st) -> tuple[np.ndarray,
 
 
 def _finest(model, cells, signs, origin, size, depth, t, cache, st, continuation, region,
-            brick=None) -> tuple[tuple, np.ndarray]:
+            brick=None, tapes: CellTapes | None = None) -> tuple[tuple, np.ndarray]:
     """Finest level: control range only (continuation) or affine only ([17]); also the
     continuation's cells outside ``brick`` (see enumerate_in_brick). Returns the finest cells
     and their corner signs (the kinds follow from them, :func:`_split_into`), and the escaped."""
     if not continuation:
         c = size / 2**depth
         lo = origin + cells * c
-        flo, fhi = _affine(model, lo, lo + c, t)
+        flo, fhi = _affine(model, lo, lo + c, t) if tapes is None else tapes.affine(lo, lo + c)
         st["affine_tests"] += len(cells)
         # the affine kinds as corner signs: all set inside, one bit (fraction 1/2 below) at the border
         signs = np.where(flo > 0, 255, np.where(fhi < 0, 0, 15)).astype(np.uint8)

@@ -39,8 +39,8 @@ from numba import prange
 
 from pipeline.model.base import Node
 from pipeline.model.tape import (
-    Oracle,
     Tape,
+    TapePool,
     bound_cull_decide,
     compile_model,
     eval_blocks,
@@ -89,33 +89,6 @@ def root_size_for(dims: np.ndarray, block: int) -> int:
     while size < dims.max() and size < 4096:
         size *= 2
     return size
-
-
-@dataclass
-class TapePool:
-    """Tapes back to back (pipeline.model.tape layout), one per cell of a level."""
-
-    start: np.ndarray
-    length: np.ndarray
-    res: np.ndarray
-    op: np.ndarray
-    a: np.ndarray
-    b: np.ndarray
-    c: np.ndarray
-    oracle: Oracle  # the mesh clauses' trees, shared by every tape of the pool
-
-    @classmethod
-    def single(cls, tape: Tape) -> TapePool:
-        one = np.zeros(1, np.int64)
-        return cls(one, np.array([len(tape)], np.int64), np.array([tape.res], np.int64), tape.op, tape.a,
-                   tape.b, tape.c, tape.oracle)
-
-    def arrays(self) -> tuple:
-        return self.start, self.length, self.res, self.op, self.a, self.b, self.c
-
-    def with_arrays(self, arrays: tuple) -> TapePool:
-        """A pool of new tapes (specialise's result) over the same oracle."""
-        return TapePool(*arrays, self.oracle)
 
 
 def enumerate_cells_tape(tape: Tape, imin: np.ndarray, imax: np.ndarray, h: float, band: float, block: int,

@@ -197,10 +197,12 @@ def _separate(ctx, p: Params, found: cc.Components, labels: np.ndarray, kept: li
     box_labels = cc.point_labels(found, 0.5 * (boxes[:, 0] + boxes[:, 1]) * blocks.voxel_size) if len(boxes) \
         else np.zeros(0, np.int64)
     files, pending = [], []
+    start, rows = cc.rows_by_label(blocks.active, labels, found.count)  # each piece's blocks, in one pass
     try:
         for k in kept:
             field = cc.ClusterField(sep, mapping[k], p.method)
-            piece = _piece_blocks(blocks, labels, k, field, voxel_depth, ctx.job.domain.index_min)
+            piece = _piece_blocks(blocks, labels, k, field, voxel_depth, ctx.job.domain.index_min,
+                                  rows[start[k]:start[k + 1]])
             grid = vg.frep_to_vdb(piece, boxes[box_labels == k], "frep")
             del piece
             grid.updateMetadata({**ctx.grid_metadata("components", p), "component_index": int(k),
@@ -222,13 +224,14 @@ def _separate(ctx, p: Params, found: cc.Components, labels: np.ndarray, kept: li
 
 
 def _piece_blocks(blocks: BlockGrid, labels: np.ndarray, k: int, field: cc.ClusterField,
-                  voxel_depth: int | None = None, index_min=None) -> BlockGrid:
+                  voxel_depth: int | None = None, index_min=None, rows: np.ndarray | None = None) -> BlockGrid:
+    """The piece's blocks; ``rows``: those holding an active voxel labelled k (None: found here)."""
     if voxel_depth is not None and field.method == "surface":  # compiled, block by block
-        rows, vals, act = field.piece_blocks(blocks, labels, k, voxel_depth, index_min)
+        rows, vals, act = field.piece_blocks(blocks, labels, k, voxel_depth, index_min, rows)
         return BlockGrid(blocks.voxel_size, blocks.background, blocks.origins[rows], vals, act)
-    mine = blocks.active & (labels == k)
-    rows = np.nonzero(mine.any(axis=(1, 2, 3)))[0]
-    act = mine[rows]
+    if rows is None:
+        rows = np.nonzero((blocks.active & (labels == k)).any(axis=(1, 2, 3)))[0]
+    act = blocks.active[rows] & (labels[rows] == k)
     vals = np.full(act.shape, np.float32(blocks.background))
     b, i, j, kk = np.nonzero(act)
     ijk = blocks.origins[rows][b] + np.stack([i, j, kk], axis=1)

@@ -837,3 +837,28 @@ def test_cluster_ids_in_place_number_clusters_by_first_appearance(n, seed, densi
     k, lab = connected_components(graph, directed=False)
     assert k == count
     assert len(np.unique(np.stack([lab, got], axis=1), axis=0)) == count  # the same partition
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 300), st.integers(1, 40), st.integers(0, 2**31 - 1), st.booleans())
+def test_rows_by_label_equal_a_scan_per_piece(nb, count, seed, uniform_blocks) -> None:
+    """Every piece's block rows from one pass (separating 242 pieces scanned every block 242
+    times) equal a scan of the blocks for that piece; labels <= 0 and inactive voxels ignored."""
+    rng = np.random.default_rng(seed)
+    active = rng.random((nb, 8, 8, 8)) < rng.random()
+    labels = rng.integers(-1, count + 1, (nb, 8, 8, 8))
+    if uniform_blocks:
+        labels = np.repeat(rng.integers(0, count + 1, nb), 512).reshape(nb, 8, 8, 8)
+    start, rows = cc.rows_by_label(active, labels, count)
+    for k in range(1, count + 1):
+        assert np.array_equal(rows[start[k]:start[k + 1]], np.flatnonzero((active & (labels == k)).any(axis=(1, 2, 3))))
+
+
+def test_separation_makes_the_octrees_ancestor_sets_once() -> None:
+    model = node({"union": [sphere((-0.6 + 0.3 * i, 0, 0), 0.08) for i in range(5)]})
+    found = cc.detect(model, *cube(), 6)
+    assert found.count == 5 and found.tree._ancestors is None
+    faces = [cc.boundary_faces(found, k) for k in range(1, 6)]
+    kept = found.tree._ancestors
+    assert kept is not None and cc._ancestor_sets(found.tree) is kept
+    assert all(len(lo) > 0 for lo, _ in faces)

@@ -278,6 +278,31 @@ def test_vdb_written_beside_reports_the_childs_error(grids: dict, tmp_path: Path
     assert time.perf_counter() - t0 < 30 and not (tmp_path / "c.vdb").exists()
 
 
+def test_cancelled_child_leaves_no_temporary_file(grids: dict, tmp_path: Path, monkeypatch) -> None:
+    """A forked writer killed by cancel() after it made its temporary file: the file goes with
+    it (a race: under load the child got that far, and CI found the file left behind)."""
+    import time
+
+    from pipeline.io import vdbgrids, vdbio
+    from pipeline.io.vdbio import write_vdb_beside
+    from pipeline.util.atomic import atomic_path
+
+    monkeypatch.setattr(vdbgrids, "_leafbuild", None)
+
+    def stuck(path, grids, meta, halves, tmp_name=None):  # the child: its temporary file, then no progress
+        with atomic_path(path, tmp_name):
+            time.sleep(60)
+
+    monkeypatch.setattr(vdbio, "_write_now", stuck)
+    pending = write_vdb_beside(tmp_path / "c.vdb", list(grids.values()))
+    t0 = time.perf_counter()
+    while _no_temp_files(tmp_path):
+        assert time.perf_counter() - t0 < 30
+        time.sleep(0.01)
+    pending.cancel()
+    assert not (tmp_path / "c.vdb").exists() and _no_temp_files(tmp_path)
+
+
 def test_metadata_value_conversions() -> None:
     assert metadata_value(np.float32(1.5)) == 1.5 and isinstance(metadata_value(np.int64(3)), int)
     assert metadata_value((1, 2, 3)) == (1, 2, 3)

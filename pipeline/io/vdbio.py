@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import itertools
 import json
 import os
 import threading
@@ -138,14 +139,15 @@ def _checked_halves(grids: list, half_float: bool | Iterable[str]) -> set[str]:
     return halves
 
 
-def _write_now(path: Path, grids: list, file_metadata: Mapping[str, Any] | None, halves: set[str]) -> None:
-    """The atomic write of checked arguments; each grid's ``saveFloatAsHalf`` flag is set for it
-    and restored afterwards."""
+def _write_now(path: Path, grids: list, file_metadata: Mapping[str, Any] | None, halves: set[str],
+               tmp_name: str | None = None) -> None:
+    """The atomic write of checked arguments (through the temporary file ``tmp_name`` when
+    given); each grid's ``saveFloatAsHalf`` flag is set for it and restored afterwards."""
     saved = [g.saveFloatAsHalf for g in grids]
     try:
         for g in grids:
             g.saveFloatAsHalf = g.name in halves
-        with atomic_path(path) as tmp:
+        with atomic_path(path, tmp_name) as tmp:
             vdb.write(str(tmp), grids=list(grids), metadata=file_metadata_dict(file_metadata or {}))
     finally:
         for g, flag in zip(grids, saved, strict=True):
@@ -156,8 +158,8 @@ class PendingWrite:
     """A .vdb being written by a forked child process (:func:`write_vdb_beside`); :meth:`wait`
     returns its path or raises the child's error (an OSError keeps its errno and file name)."""
 
-    def __init__(self, path: Path, pid: int | None, errors: int | None):
-        self.path, self._pid, self._errors = path, pid, errors
+    def __init__(self, path: Path, pid: int | None, errors: int | None, tmp: Path | None = None):
+        self.path, self._pid, self._errors, self._tmp = path, pid, errors, tmp
 
     def wait(self) -> Path:
         if self._pid is None:
@@ -189,6 +191,9 @@ class PendingWrite:
             os.kill(pid, signal.SIGKILL)
         os.waitpid(pid, 0)
         os.close(self._errors)
+        if self._tmp is not None:  # the child may have been killed after it made its temporary file
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self._tmp)
 
 
 class ThreadedWrite:
@@ -257,13 +262,14 @@ def write_vdb_beside(
     if writer is not None:
         return ThreadedWrite(writer, path, grids, meta, halves)
     read_end, write_end = os.pipe()
+    tmp_name = f".{path.stem}.{os.getpid()}-{next(_CHILD_WRITES)}.tmp{path.suffix}"  # known here: cancel removes it
     pid = os.fork()
     if pid == 0:  # the child: write, report, leave without running the parent's exit handlers
         code = 0
         try:
             os.close(read_end)
             _die_with_parent()
-            _write_now(path, grids, meta, halves)
+            _write_now(path, grids, meta, halves, tmp_name)
         except BaseException as e:  # noqa: BLE001 - everything goes back to the parent
             code = 1
             # short: the parent reads the pipe only after the child has exited, and a report
@@ -275,7 +281,10 @@ def write_vdb_beside(
         finally:
             os._exit(code)
     os.close(write_end)
-    return PendingWrite(path, pid, read_end)
+    return PendingWrite(path, pid, read_end, path.parent / tmp_name)
+
+
+_CHILD_WRITES = itertools.count()  # numbers the forked writers' temporary files within a process
 
 
 def _die_with_parent() -> None:

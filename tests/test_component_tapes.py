@@ -144,3 +144,13 @@ def test_models_without_min_max_keep_the_whole_tape(rfunc):
     assert not compile_model(model).shortens
     tree = cc.enumerate_octree(model, np.full(3, -1.0), 2.0, 5)
     assert all("mean_tape" not in lv for lv in tree.stats["levels"])
+
+
+def test_short_tapes_are_not_shortened_further():
+    """Below cc.SHORT_TAPE clauses deciding costs what it saves: a small CSG keeps its tape."""
+    model = node({"union": [{"box": {"min": [-0.5, -0.5, -0.1], "max": [0.5, 0.5, 0.1]}},
+                            {"sphere": {"center": [0.3, 0.3, 0.2], "radius": 0.3}}], "rfunc": "min_max"})
+    tape = compile_model(model)
+    assert tape.shortens and len(tape) < cc.SHORT_TAPE
+    tree = cc.enumerate_octree(model, np.full(3, -1.0), 2.0, 6)
+    assert all("mean_tape" not in lv for lv in tree.stats["levels"])

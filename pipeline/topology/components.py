@@ -587,8 +587,8 @@ def _child_corner_signs(cache: _CornerCache, parents: np.ndarray, psigns: np.nda
     each. A point shared by neighbouring parents (on a common face or edge: half of them at
     1024^3) belongs to the first of them in key order, which evaluates it; the others copy its
     sign. The parents come in key order (every level of the descent does); otherwise each
-    parent evaluates all its 19 points. ``tapes``: parent i's shortened tape is tape i (all
-    its 19 points lie in its box)."""
+    parent evaluates all its 19 points. ``tapes``: the parents' tapes, cell i of it being parent
+    i (its 19 points lie in its closed box, where its tape gives the model's values)."""
     parents = np.ascontiguousarray(parents, dtype=np.int64)
     keys = pack(parents)
     if len(keys) > 1 and not np.all(keys[1:] > keys[:-1]):

@@ -390,6 +390,13 @@ class TapePool:
     def max_length(self) -> int:
         return int(self.length.max()) if len(self.length) else 0
 
+    def decision_arrays(self, tape_of: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(choff, choices) for the decisions of boxes with the tapes ``tape_of``: box q's clause k
+        at choices[choff[q] + k] (int32: a mesh clause records its start node)."""
+        lens = self.length[tape_of]
+        choff = np.concatenate([[0], np.cumsum(lens)[:-1]]).astype(np.int64)
+        return choff, np.zeros(int(lens.sum()), np.int32)
+
     def evaluate(self, points: np.ndarray, tape_of: np.ndarray | None = None) -> np.ndarray:
         """Values at points (N, 3), point i by tape ``tape_of[i]`` (None: tape 0). Consecutive
         points of the same tape are evaluated together, so give the points of a tape together."""
@@ -408,13 +415,10 @@ class TapePool:
         (world, (N, 3)) by the interval decisions of :func:`bound_boxes` and :func:`specialise`:
         the same values as that tape everywhere in the box, to the bit."""
         tape_of = np.asarray(tape_of, np.int64)
-        lens = self.length[tape_of]
-        choff = np.concatenate([[0], np.cumsum(lens)[:-1]]).astype(np.int64)
-        choices = np.zeros(int(lens.sum()), np.int32)
+        choff, choices = self.decision_arrays(tape_of)
         if len(tape_of):
-            f64 = np.ascontiguousarray
-            bound_boxes(f64(lo, dtype=np.float64), f64(hi, dtype=np.float64), tape_of, *self.arrays(),
-                        *self.oracle.arrays(), max(self.max_length, 1), choff, choices)
+            bound_boxes(np.ascontiguousarray(lo, dtype=np.float64), np.ascontiguousarray(hi, dtype=np.float64),
+                        tape_of, *self.arrays(), *self.oracle.arrays(), max(self.max_length, 1), choff, choices)
         return self.with_arrays(specialise(np.arange(len(tape_of), dtype=np.int64), tape_of, *self.arrays(),
                                            choff, choices))
 

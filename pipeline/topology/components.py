@@ -462,6 +462,7 @@ class CellTapes:
         return level < depth - 1 and len(lengths) > 0 and lengths.mean() >= SHORT_TAPE
 
     def take(self, which: np.ndarray) -> CellTapes:
+        """The tapes of the cells ``which`` (a mask, or rows: the children's parents)."""
         return CellTapes(self.pool, self.tape_of[which])
 
     def affine(self, lo: np.ndarray, hi: np.ndarray, which: np.ndarray | None = None):
@@ -479,10 +480,6 @@ class CellTapes:
     def evaluate(self, points: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """Values at points, point i by the tape of cell ``rows[i]`` (in that cell's box)."""
         return self.pool.evaluate(points, self.tape_of[rows])
-
-    def of_children(self, rows: np.ndarray) -> CellTapes:
-        """The children's tapes: those of their parents, the cells ``rows``."""
-        return CellTapes(self.pool, self.tape_of[rows])
 
 
 class _CornerCache:
@@ -963,7 +960,7 @@ def enumerate_in_brick(model: Node, origin, size: float, depth: int, t: float = 
         csigns = (_child_corner_signs(cache, parents, signs[split], 1 << (depth - lv - 1), tapes) if continuation
                   else np.zeros(0, np.uint8))
         cells, signs, rows = _sorted_children(parents, csigns)
-        tapes = tapes.of_children(rows) if tapes is not None else None
+        tapes = tapes.take(rows) if tapes is not None else None  # each child starts from its parent's
         signs = signs if continuation else None
     st["corner_evaluations"] = cache.evaluations
     coarse = (_cat(kept_l, (0,), np.int64), _cat(kept_c, (0, 3), np.int64), _cat(kept_k, (0,), np.int8),

@@ -141,14 +141,12 @@ def _bound_level(pool: TapePool, tape_of: np.ndarray, blo: np.ndarray, bhi: np.n
                  dhi: np.ndarray):
     """Interval bounds of each box (blo..bhi) with its tape, and for the boxes not culled the
     min/max decisions over their decision boxes dlo..dhi (offsets, choices)."""
-    lens = pool.length[tape_of]
-    choff = np.concatenate([[0], np.cumsum(lens)[:-1]]).astype(np.int64)
-    choices = np.zeros(int(lens.sum()), np.int32)  # int32: a mesh clause records its start node
+    choff, choices = pool.decision_arrays(tape_of)
     if len(tape_of) == 0:
         return np.zeros(0), np.zeros(0), (choff, choices)
     f64 = partial(np.ascontiguousarray, dtype=np.float64)
     flo, fhi = bound_cull_decide(f64(blo), f64(bhi), f64(dlo), f64(dhi), tape_of, *pool.arrays(),
-                                 *pool.oracle.arrays(), int(lens.max()), choff, choices)
+                                 *pool.oracle.arrays(), int(pool.length[tape_of].max()), choff, choices)
     return flo, fhi, (choff, choices)
 
 

@@ -1449,44 +1449,67 @@ def _specialise_one(op, a, b, c, alias, choice, res):
     return nop, na, nb, nc, newpos[alias[res]]
 
 
+KEPT = np.int32(1 << 30)  # flag on a clause's decision: the clause stays in the box's shortened tape
+
+
 @njit(cache=True)
-def _spec_into(op, a, b, c, s, ln, res, choices, ch0, alias, live, newpos, oop, oa, ob, oc, o0, write):
-    """:func:`_specialise_one` of the tape at s..s+ln with decisions at choices[ch0:], written
-    into the output arrays from o0 on, with caller-owned scratch (no allocation per cell).
-    Returns (clauses written, result position)."""
+def _spec_count(op, a, b, s, ln, res, choices, ch0, alias, live):
+    """The first half of :func:`_specialise_one` for the tape at s..s+ln with decisions at
+    choices[ch0:], with caller-owned scratch (no allocation per cell): every clause the
+    shortened tape keeps gets the flag KEPT on its decision, for :func:`_spec_write`. Returns
+    how many are kept. The tape is in topological order, so the result (the last clause kept)
+    is at the shortened tape's end."""
     for k in range(ln):
         alias[k] = k
-        if (op[s + k] == MIN or op[s + k] == MAX) and choices[ch0 + k] != 0:
-            alias[k] = alias[a[s + k]] if choices[ch0 + k] == 1 else alias[b[s + k]]
+        ck = choices[ch0 + k] & ~KEPT  # (flags of an earlier count of the same decisions)
+        choices[ch0 + k] = ck
+        if ck != 0 and (op[s + k] == MIN or op[s + k] == MAX):
+            alias[k] = alias[a[s + k]] if ck == 1 else alias[b[s + k]]
         live[k] = False
     live[alias[res]] = True
+    m = 0
     for k in range(ln - 1, -1, -1):
         if live[k] and alias[k] == k:
+            m += 1
+            choices[ch0 + k] |= KEPT
             if a[s + k] >= 0:
                 live[alias[a[s + k]]] = True
             if b[s + k] >= 0:
                 live[alias[b[s + k]]] = True
+    return m
+
+
+@njit(cache=True)
+def _spec_write(op, a, b, c, s, ln, choices, ch0, alias, newpos, oop, oa, ob, oc, o0):
+    """The second half: the clauses flagged by :func:`_spec_count` written from o0 on, their
+    operands renumbered (one pass: a clause's operands come before it)."""
     m = 0
     for k in range(ln):
-        if live[k] and alias[k] == k:
-            newpos[k] = m
-            if not write:
-                m += 1
-                continue
-            oop[o0 + m] = op[s + k]
-            oa[o0 + m] = newpos[alias[a[s + k]]] if a[s + k] >= 0 else -1
-            ob[o0 + m] = newpos[alias[b[s + k]]] if b[s + k] >= 0 else -1
-            oc[o0 + m] = c[s + k] if op[s + k] != BSP or choices[ch0 + k] < 3 else float(choices[ch0 + k] - 3)
-            m += 1
-    return m, newpos[alias[res]]
+        ck = choices[ch0 + k]
+        kept = (ck & KEPT) != 0
+        ck &= ~KEPT
+        alias[k] = k
+        if ck != 0 and (op[s + k] == MIN or op[s + k] == MAX):
+            alias[k] = alias[a[s + k]] if ck == 1 else alias[b[s + k]]
+        if not kept:
+            continue
+        newpos[k] = m
+        oop[o0 + m] = op[s + k]
+        oa[o0 + m] = newpos[alias[a[s + k]]] if a[s + k] >= 0 else -1
+        ob[o0 + m] = newpos[alias[b[s + k]]] if b[s + k] >= 0 else -1
+        oc[o0 + m] = c[s + k] if op[s + k] != BSP or ck < 3 else float(ck - 3)
+        m += 1
 
 
 @njit(parallel=True, cache=True)
 def specialise(keep, tape_of, start, length, res, op, a, b, c, choff, choices):
     """The shortened tape of every kept box (``keep``: box indices), as a new pool; returns
     (start, length, res, op, a, b, c) with tape i belonging to box keep[i]. Two parallel passes
-    over the boxes: count each shortened tape, then write it at its offset (no room is reserved
-    for the parents' lengths: at fine levels that would be gigabytes).
+    over the boxes: count each shortened tape (flagging the clauses it keeps in ``choices``;
+    a later call with the same decisions clears the flags first), then write it at its offset (no room is reserved for the parents'
+    lengths: at fine levels that would be gigabytes). Three loops over a tape in all (six before
+    the flags: the octet lattice's 274,625 cells of components' level 7, 319M clauses, 3.2-6.3
+    -> see docs/performance.md session 31).
 
     A box whose decisions change nothing keeps its parent's tape: when such boxes hold more
     clauses than the parents' pool, the new pool starts with a copy of the parents' pool and
@@ -1497,22 +1520,17 @@ def specialise(keep, tape_of, start, length, res, op, a, b, c, choff, choices):
     for i in range(nk):
         maxlen = max(maxlen, length[tape_of[keep[i]]])
     nlen = np.empty(nk, np.int64)
-    nres = np.empty(nk, np.int64)
     same = np.empty(nk, np.bool_)
-    dummy_i = np.empty(0, np.int64)
-    dummy_f = np.empty(0, np.float64)
     per = 16
     nch = (nk + per - 1) // per
     for ch in prange(nch):
         alias = np.empty(maxlen, np.int64)
         live = np.empty(maxlen, np.bool_)
-        newpos = np.empty(maxlen, np.int64)
         for i in range(ch * per, min(nk, (ch + 1) * per)):
             q = keep[i]
             tp = tape_of[q]
-            m, r = _spec_into(op, a, b, c, start[tp], length[tp], res[tp], choices, choff[q], alias, live, newpos,
-                              dummy_i, dummy_i, dummy_i, dummy_f, 0, False)
-            nlen[i], nres[i] = m, r
+            m = _spec_count(op, a, b, start[tp], length[tp], res[tp], choices, choff[q], alias, live)
+            nlen[i] = m
             same[i] = m == length[tp] and _keeps_starts(op, start[tp], length[tp], choices, choff[q])
     shared = 0
     for i in range(nk):
@@ -1520,12 +1538,15 @@ def specialise(keep, tape_of, start, length, res, op, a, b, c, choff, choices):
             shared += nlen[i]
     base = op.shape[0] if shared > op.shape[0] else 0  # share when it saves more than the copy
     nstart = np.zeros(nk, np.int64)
+    nres = np.empty(nk, np.int64)
     total = base
     for i in range(nk):
         if base > 0 and same[i]:
-            nstart[i] = start[tape_of[keep[i]]]
+            tp = tape_of[keep[i]]
+            nstart[i], nres[i] = start[tp], res[tp]
         else:
             nstart[i] = total
+            nres[i] = nlen[i] - 1
             total += nlen[i]
     pop, pa, pb, pc = (np.empty(total, np.int64), np.empty(total, np.int64), np.empty(total, np.int64),
                        np.empty(total, np.float64))
@@ -1536,15 +1557,14 @@ def specialise(keep, tape_of, start, length, res, op, a, b, c, choff, choices):
         pc[:base] = c
     for ch in prange(nch):
         alias = np.empty(maxlen, np.int64)
-        live = np.empty(maxlen, np.bool_)
         newpos = np.empty(maxlen, np.int64)
         for i in range(ch * per, min(nk, (ch + 1) * per)):
             if base > 0 and same[i]:
                 continue
             q = keep[i]
             tp = tape_of[q]
-            _spec_into(op, a, b, c, start[tp], length[tp], res[tp], choices, choff[q], alias, live, newpos,
-                       pop, pa, pb, pc, nstart[i], True)
+            _spec_write(op, a, b, c, start[tp], length[tp], choices, choff[q], alias, newpos, pop, pa, pb, pc,
+                        nstart[i])
     return nstart, nlen, nres, pop, pa, pb, pc
 
 
@@ -1554,5 +1574,5 @@ def _keeps_starts(op, s, ln, choices, ch0) -> bool:
     choices[ch0:] (with every clause kept, the shortened tape is then the tape itself)."""
     n = 0
     for k in range(ln):
-        n += op[s + k] == BSP and choices[ch0 + k] >= 3
+        n += op[s + k] == BSP and (choices[ch0 + k] & ~KEPT) >= 3
     return n == 0

@@ -67,6 +67,13 @@ IMMEDIATE = {ADDC, MULC, RSUBC, DIVC, RDIVC}
 UNARY = {NEG, SQRT, SQR, ABS, EXP, LOG, SIN, COS, POWC, COMPRESS} | IMMEDIATE
 
 
+# storage of a tape's clauses: an opcode fits a byte and an operand index 32 bits (17 bytes a
+# clause with its float64 constant instead of 32: the pools of a descent's fine levels hold
+# hundreds of millions of clauses, and on this project's VMs their first touch is what costs)
+OP_T = np.int8
+IX_T = np.int32
+
+
 class NotTraceable(TypeError):
     """A node's formula uses something the tape cannot record (an oracle, a Python branch)."""
 
@@ -344,6 +351,7 @@ class Tape:
     def __post_init__(self):
         if self.oracle is None:
             self.oracle = Oracle.empty()
+        self.op, self.a, self.b = _clause_arrays(self.op, self.a, self.b)
 
     def __len__(self) -> int:
         return len(self.op)
@@ -359,6 +367,12 @@ class Tape:
         return {NAMES[int(k)]: int(v) for k, v in zip(u, n, strict=True)}
 
 
+def _clause_arrays(op, a, b) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """op, a, b in their storage types (OP_T, IX_T; no copy when they are already)."""
+    return (np.ascontiguousarray(op, dtype=OP_T), np.ascontiguousarray(a, dtype=IX_T),
+            np.ascontiguousarray(b, dtype=IX_T))
+
+
 @dataclass
 class TapePool:
     """Tapes back to back (the layout of the module docstring), one per cell of a level of a
@@ -372,6 +386,9 @@ class TapePool:
     b: np.ndarray
     c: np.ndarray
     oracle: Oracle  # the mesh clauses' trees, shared by every tape of the pool
+
+    def __post_init__(self):
+        self.op, self.a, self.b = _clause_arrays(self.op, self.a, self.b)
 
     @classmethod
     def single(cls, tape: Tape) -> TapePool:
@@ -1434,9 +1451,9 @@ def _specialise_one(op, a, b, c, alias, choice, res):
         if live[k] and alias[k] == k:
             newpos[k] = m
             m += 1
-    nop = np.empty(m, np.int64)
-    na = np.empty(m, np.int64)
-    nb = np.empty(m, np.int64)
+    nop = np.empty(m, OP_T)
+    na = np.empty(m, IX_T)
+    nb = np.empty(m, IX_T)
     nc = np.empty(m, np.float64)
     for k in range(n):
         p = newpos[k]
@@ -1505,11 +1522,10 @@ def _spec_write(op, a, b, c, s, ln, choices, ch0, alias, newpos, oop, oa, ob, oc
 def specialise(keep, tape_of, start, length, res, op, a, b, c, choff, choices):
     """The shortened tape of every kept box (``keep``: box indices), as a new pool; returns
     (start, length, res, op, a, b, c) with tape i belonging to box keep[i]. Two parallel passes
-    over the boxes: count each shortened tape (flagging the clauses it keeps in ``choices``;
-    a later call with the same decisions clears the flags first), then write it at its offset (no room is reserved for the parents'
-    lengths: at fine levels that would be gigabytes). Three loops over a tape in all (six before
-    the flags: the octet lattice's 274,625 cells of components' level 7, 319M clauses, 3.2-6.3
-    -> see docs/performance.md session 31).
+    over the boxes: count each shortened tape, flagging the clauses it keeps in ``choices`` (a
+    later call with the same decisions clears the flags first), then write it at its offset (no
+    room is reserved for the parents' lengths: at fine levels that would be gigabytes). Three
+    loops over a tape in all; six before the flags (docs/performance.md, session 30).
 
     A box whose decisions change nothing keeps its parent's tape: when such boxes hold more
     clauses than the parents' pool, the new pool starts with a copy of the parents' pool and
@@ -1548,8 +1564,7 @@ def specialise(keep, tape_of, start, length, res, op, a, b, c, choff, choices):
             nstart[i] = total
             nres[i] = nlen[i] - 1
             total += nlen[i]
-    pop, pa, pb, pc = (np.empty(total, np.int64), np.empty(total, np.int64), np.empty(total, np.int64),
-                       np.empty(total, np.float64))
+    pop, pa, pb, pc = np.empty(total, OP_T), np.empty(total, IX_T), np.empty(total, IX_T), np.empty(total)
     if base > 0:
         pop[:base] = op
         pa[:base] = a

@@ -1525,7 +1525,7 @@ def specialise(keep, tape_of, start, length, res, op, a, b, c, choff, choices):
     over the boxes: count each shortened tape, flagging the clauses it keeps in ``choices`` (a
     later call with the same decisions clears the flags first), then write it at its offset (no
     room is reserved for the parents' lengths: at fine levels that would be gigabytes). Three
-    loops over a tape in all; six before the flags (docs/performance.md, session 30).
+    loops over a tape in all; six before the flags (docs/performance.md, session 31).
 
     A box whose decisions change nothing keeps its parent's tape: when such boxes hold more
     clauses than the parents' pool, the new pool starts with a copy of the parents' pool and

@@ -598,3 +598,42 @@ def test_specialise_shares_unchanged_tapes(tmp_path) -> None:
                 np.testing.assert_array_equal(got[sl], want)
     assert shared > 0  # some level shared its parents' tapes
     assert len(pool.op) < pool.length.sum()
+
+
+def test_lattice_descent_pools_are_exact_and_compact(tmp_path) -> None:
+    """A dense strut lattice (the lattice node, octet) through voxelise's descent: the tape of
+    every block (specialised level by level, each from its parent's) gives the whole tape's
+    values at the block's voxel centres to the bit, its clauses are far fewer than the whole
+    tape's, and every pool keeps the storage types (int8 opcodes, int32 operands), so no kernel
+    compiles a second signature. Calling specialise again with the same decisions (the flags of
+    the first call's count left in them) gives the same pool."""
+    from pipeline.voxel import voxelise as vx
+
+    job = job_of(tmp_path, "lattice: {pattern: octet, cell: 0.5, bounds: [[-1, -1, -1], [1, 1, 1]], radius: 0.04}")
+    tp = pt.compile_model(job.model, 0.0)
+    assert tp.op.dtype == pt.OP_T and tp.a.dtype == pt.IX_T and tp.b.dtype == pt.IX_T
+    calls = []
+    orig = pt.specialise
+
+    def spy(*args):
+        out = orig(*args)
+        calls.append((args, out))
+        return out
+
+    vx.specialise = spy
+    try:
+        h = 0.03
+        lo, hi = np.full(3, int(-1.1 / h)), np.full(3, int(1.1 / h))
+        levels, pool = vx.enumerate_cells_tape(tp, lo, hi, h, 3.0, 8)
+    finally:
+        vx.specialise = orig
+    assert len(levels.blocks) > 100 and pool.length.mean() < len(tp) / 10
+    for args, out in calls:
+        assert out[3].dtype == pt.OP_T and out[4].dtype == pt.IX_T and out[5].dtype == pt.IX_T
+        again = orig(*args)
+        for x, y in zip(out, again, strict=True):
+            np.testing.assert_array_equal(x, y)
+    pick = np.random.default_rng(5).choice(len(levels.blocks), 40, replace=False)
+    pts = block_points(levels.blocks[pick], 8, h)
+    got = pool.evaluate(pts, np.repeat(pick, 512))
+    np.testing.assert_array_equal(got, pt.evaluate_with(tp, pts))

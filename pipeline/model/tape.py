@@ -1466,7 +1466,9 @@ def _specialise_one(op, a, b, c, alias, choice, res):
     return nop, na, nb, nc, newpos[alias[res]]
 
 
-KEPT = np.int32(1 << 30)  # flag on a clause's decision: the clause stays in the box's shortened tape
+# flag on a clause's decision: the clause stays in the box's shortened tape (a mesh clause's
+# decision 3 + start node stays below it: a BSP-tree of 2^30 nodes would take ~100 GB)
+KEPT = np.int32(1 << 30)
 
 
 @njit(cache=True)

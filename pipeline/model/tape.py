@@ -191,6 +191,13 @@ def _scalar_eval(op, va, vb, c):
     return _apply(op, va, vb, c)
 
 
+_NUMBERS = frozenset((float, int, np.float64, np.float32, np.int64, np.int32))
+# (op, the number first) -> (immediate opcode, its constant is the number (True) or its negation)
+_IMMEDIATE_OF = {(ADD, False): (ADDC, True), (ADD, True): (ADDC, True), (SUB, False): (ADDC, False),
+                 (SUB, True): (RSUBC, True), (MUL, False): (MULC, True), (MUL, True): (MULC, True),
+                 (DIV, False): (DIVC, True), (DIV, True): (RDIVC, True)}
+
+
 class Sym:
     """A traced value: position of its clause in the builder. Arithmetic records clauses."""
 
@@ -209,6 +216,11 @@ class Sym:
         raise NotTraceable(f"cannot trace an operation with {type(other).__name__}")
 
     def _bin(self, op: int, other, swap: bool = False) -> Sym:
+        tb = self.tb
+        if type(other) in _NUMBERS and tb.op[self.pos] != CONST:  # straight to the immediate clause
+            k = float(other)
+            imm, c = _IMMEDIATE_OF[op, swap]
+            return tb.emit(imm, self.pos, -1, k if c else -k)
         o = self._lift(other)
         a, b = (o, self) if swap else (self, o)
         return self.tb.emit(op, a.pos, b.pos)

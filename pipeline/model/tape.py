@@ -148,13 +148,10 @@ class TapeBuilder:
         return Sym(self, pos)
 
     def _immediate(self, op: int, a: int, b: int) -> tuple[int, int, int, float]:
-        """(op, a, -1, c) of an arithmetic clause with exactly one constant operand (a - k is
-        a + (-k) to the bit in IEEE arithmetic)."""
+        """(op, a, -1, c) of an arithmetic clause with exactly one constant operand."""
         if self.op[b] == CONST:
-            k = self.c[b]
-            return {ADD: (ADDC, a, -1, k), SUB: (ADDC, a, -1, -k), MUL: (MULC, a, -1, k), DIV: (DIVC, a, -1, k)}[op]
-        k = self.c[a]
-        return {ADD: (ADDC, b, -1, k), SUB: (RSUBC, b, -1, k), MUL: (MULC, b, -1, k), DIV: (RDIVC, b, -1, k)}[op]
+            return immediate_clause(op, a, self.c[b], False)
+        return immediate_clause(op, b, self.c[a], True)
 
     def const(self, v: float) -> Sym:
         v = float(v)
@@ -198,6 +195,13 @@ _IMMEDIATE_OF = {(ADD, False): (ADDC, True), (ADD, True): (ADDC, True), (SUB, Fa
                  (DIV, False): (DIVC, True), (DIV, True): (RDIVC, True)}
 
 
+def immediate_clause(op: int, pos: int, k: float, number_first: bool) -> tuple[int, int, int, float]:
+    """(opcode, operand, -1, constant) of ``op`` between clause ``pos`` and the number k (first
+    when ``number_first``): a - k is a + (-k) to the bit in IEEE arithmetic."""
+    imm, same = _IMMEDIATE_OF[op, number_first]
+    return imm, pos, -1, k if same else -k
+
+
 class Sym:
     """A traced value: position of its clause in the builder. Arithmetic records clauses."""
 
@@ -216,11 +220,8 @@ class Sym:
         raise NotTraceable(f"cannot trace an operation with {type(other).__name__}")
 
     def _bin(self, op: int, other, swap: bool = False) -> Sym:
-        tb = self.tb
-        if type(other) in _NUMBERS and tb.op[self.pos] != CONST:  # straight to the immediate clause
-            k = float(other)
-            imm, c = _IMMEDIATE_OF[op, swap]
-            return tb.emit(imm, self.pos, -1, k if c else -k)
+        if type(other) in _NUMBERS and self.tb.op[self.pos] != CONST:  # no constant clause to look up
+            return self.tb.emit(*immediate_clause(op, self.pos, float(other), swap))
         o = self._lift(other)
         a, b = (o, self) if swap else (self, o)
         return self.tb.emit(op, a.pos, b.pos)

@@ -619,6 +619,51 @@ def test_block_labels_equal_point_labels_on_every_active_voxel(gap):
     assert not got[~blocks.active].any()
 
 
+@pytest.mark.parametrize("hole", ["inactive", "no_block"])
+def test_block_labels_where_finest_cells_are_not_active_voxels(hole, monkeypatch):
+    """Finest cells at voxels the band left inactive, or on no block at all (a knot's mesh at
+    512^3 has 176 of the latter): block_labels still equals point_labels on every active voxel
+    (the nearest finest cell is any finest cell), and the local search still runs: only voxels
+    within its reach of a finest cell on no block take the exact path. (The search read the
+    labels of inactive voxels as 0 and wrote 0 into active ones; a finest cell on no block sent
+    every voxel outside the kept cells to point_labels.)"""
+    from pipeline.sparse.grid import BlockGrid
+
+    model, found, blocks, imin, depth = _two_sphere_blocks(0.03)
+    h = blocks.voxel_size
+    tree = found.tree
+    assert int(cc.block_labels(found, blocks, imin).astype(bool).sum()) == int(blocks.active.sum())
+    fine = imin + tree.coords[tree.level == tree.depth]
+    rng = np.random.default_rng(3)
+    if hole == "inactive":  # half of the finest cells' voxels out of the band
+        pick = fine[rng.random(len(fine)) < 0.5]
+        o = (pick >> 3) << 3
+        row = blocks.block_index(o)
+        i, j, k = (pick - o).T
+        active = blocks.active.copy()
+        active[row, i, j, k] = False
+        blocks = BlockGrid(h, blocks.background, blocks.origins, blocks.values, active)
+    else:  # a few blocks holding finest cells dropped
+        rows = np.unique(blocks.block_index((fine >> 3) << 3))
+        drop = rng.choice(rows, 6, replace=False)
+        keep = np.setdiff1d(np.arange(len(blocks.origins)), drop)
+        blocks = BlockGrid(h, blocks.background, blocks.origins[keep], blocks.values[keep], blocks.active[keep])
+    exact = []
+    real = cc.point_labels
+    monkeypatch.setattr(cc, "point_labels", lambda comp, pts: exact.append(len(pts)) or real(comp, pts))
+    got = cc.block_labels(found, blocks, imin)
+    b, i, j, k = np.nonzero(blocks.active)
+    pts = (blocks.origins[b] + np.stack([i, j, k], axis=1)) * h
+    want = real(found, pts)
+    outside = int((tree.locate(pts) < 0).sum())
+    assert np.all(want > 0) and outside > 1000
+    assert np.array_equal(got[b, i, j, k], want)
+    assert not got[~blocks.active].any()
+    # the voxels beyond the search's reach of every finest cell, and (no_block) those near the
+    # dropped blocks, went to point_labels; not the thousands outside the kept cells
+    assert sum(exact) < outside / 4
+
+
 @pytest.mark.parametrize("gap, cut", [(0.03, False), (0.12, False), (0.12, True)])
 def test_piece_blocks_equal_the_separation_field_at_every_voxel(gap, cut):
     """The stage's compiled piece (ClusterField.piece_blocks: membership painted by cells, the

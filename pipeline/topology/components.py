@@ -34,7 +34,7 @@ from pipeline.model.base import Node
 from pipeline.model.tape import TapePool, compile_model, evaluate_with
 from pipeline.model.tape_affine import affine_bounds
 from pipeline.sparse.access import ALL27, OWN_ROWS, block_neighbours27, load_ghosts
-from pipeline.sparse.grid import KEY_BITS, KEY_OFFSET, LEAF, key3, key_of
+from pipeline.sparse.grid import KEY_BITS, KEY_OFFSET, LEAF, LEAF_LOG2, key3, key_of, pack_keys
 from pipeline.util.jit import njit
 
 INSIDE, BORDER = 1, 2
@@ -924,6 +924,7 @@ def enumerate_in_brick(model: Node, origin, size: float, depth: int, t: float = 
     rlo, rhi = (np.full(3, -np.inf), np.full(3, np.inf)) if region is None else map(np.asarray, region)
     cache = _CornerCache(model, origin, size / 2**depth, t)
     tapes = CellTapes.start(model, cache.tape)  # None: the model is bounded and evaluated as a whole
+    whole = TapePool.single(cache.tape) if tapes is None and cache.tape is not None else None
     st = {"affine_tests": 0, "affine_skipped": 0, "cells_visited": 0, "continuation_cells": 0, "levels": []}
     kept_l, kept_c, kept_k, kept_p = [], [], [], []
     cells = np.zeros((1, 3), np.int64)
@@ -946,7 +947,7 @@ def enumerate_in_brick(model: Node, origin, size: float, depth: int, t: float = 
                                       (rlo, rhi), brick, tapes)
             st["levels"].append({"level": lv, "cells": int(len(cells))})
             break
-        inside, split = _classify(model, cells, signs, lv, origin, size, t, st, tapes)
+        inside, split = _classify(model, cells, signs, lv, origin, size, t, st, tapes, whole)
         kept_l.append(np.full(int(inside.sum()), lv)), kept_c.append(cells[inside])
         kept_k.append(np.full(int(inside.sum()), INSIDE, np.int8)), kept_p.append(np.ones(int(inside.sum())))
         st["levels"].append({"level": lv, "cells": int(len(cells)), "inside": int(inside.sum()),
@@ -982,24 +983,45 @@ def _cat(parts: list, shape: tuple, dtype) -> np.ndarray:
     return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(shape, dtype)
 
 
-def _classify(model, cells, signs, lv, origin, size, t, st, tapes: CellTapes | None = None
-              ) -> tuple[np.ndarray, np.ndarray]:
+def _classify(model, cells, signs, lv, origin, size, t, st, tapes: CellTapes | None = None,
+              whole: TapePool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Coarse level: (inside, subdivide) masks. A sign change on the corners proves a zero
-    (control range, eq. 3) and skips the affine test; other cells are bounded by RAA, each with
-    its own shortened tape when ``tapes`` are given."""
+    (control range, eq. 3) and skips the bounds; the other cells are bounded by :func:`_bounds`."""
     # mixed corner signs (bits neither all clear nor all set) prove a zero
     known = (signs != 0) & (signs != 255) if signs is not None else np.zeros(len(cells), bool)
     test = ~known
     c = size / 2**lv
     lo = origin + cells[test] * c
-    flo, fhi = _affine(model, lo, lo + c, t) if tapes is None else tapes.affine(lo, lo + c, test)
-    st["affine_tests"] += int(test.sum())
+    flo, fhi = _bounds(model, lo, lo + c, t, st, np.flatnonzero(test), tapes, whole)
     st["affine_skipped"] += int(known.sum())
     inside = np.zeros(len(cells), bool)
     split = known.copy()
     inside[test] = flo > 0
     split[test] = ~(flo > 0) & ~(fhi < 0)
     return inside, split
+
+
+def _bounds(model, lo, hi, t, st, rows, tapes: CellTapes | None, whole: TapePool | None):
+    """Bounds of the cells ``rows`` (boxes lo..hi), each with its own shortened tape when
+    ``tapes`` are given, else the model's (``whole``, or the node tree when None). A cell whose
+    tape is a closed mesh's clause alone is decided by the mesh's surface, as voxelise's descent
+    does (TapePool.surface_sides): no triangle near it, the sign of one point; one near, split.
+    The others get RAA. (A knot's mesh at 512^3: the interval bounds of its min_max tree
+    left a third of a million cells 6-7 voxels inside unproven down to the finest level.)"""
+    pool, tape_of = (tapes.pool, tapes.tape_of[rows]) if tapes is not None else (whole, None)
+    flo, fhi = np.full(len(lo), -np.inf), np.full(len(lo), np.inf)
+    rest = np.ones(len(lo), bool)
+    if pool is not None:
+        kind, v = pool.surface_sides(lo, hi, tape_of)
+        flo[kind == 1] = fhi[kind == 1] = v[kind == 1]
+        rest = kind == 0
+        st["surface_tests"] = st.get("surface_tests", 0) + int(len(lo) - rest.sum())
+    if rest.any():
+        sel = np.flatnonzero(rest)
+        flo[sel], fhi[sel] = (_affine(model, lo[sel], hi[sel], t) if tapes is None
+                              else tapes.affine(lo[sel], hi[sel], rows[sel]))
+    st["affine_tests"] += int(rest.sum())
+    return flo, fhi
 
 
 def _finest(model, cells, signs, origin, size, depth, t, cache, st, continuation, region,
@@ -1419,6 +1441,7 @@ _NEAR_OFFSETS = np.array([[i, j, k] for i in range(-_NEAR_R, _NEAR_R + 1) for j 
                           for k in range(-_NEAR_R, _NEAR_R + 1) if 0 < i * i + j * j + k * k <= _NEAR_R**2],
                          np.int64)
 _NEAR_OFFSETS = _NEAR_OFFSETS[np.argsort((_NEAR_OFFSETS**2).sum(axis=1), kind="stable")]
+_NEAR_OFFSETS0 = np.concatenate([np.zeros((1, 3), np.int64), _NEAR_OFFSETS])  # and the voxel itself
 
 
 def block_labels(comp: Components, blocks, index_min) -> np.ndarray:
@@ -1426,8 +1449,9 @@ def block_labels(comp: Components, blocks, index_min) -> np.ndarray:
     the voxel centres, for an octree whose finest cell is the voxel (cell c holds voxel
     ``index_min + c``): the kept cells paint their labels on the blocks they cover (one lookup
     per cell and block), and a voxel outside every kept cell takes the label of the nearest
-    finest-cell voxel, searched in its 27 neighbouring blocks (within 4 voxels; the rare voxel
-    farther from all of them, or a finest cell on no block, goes to :func:`point_labels`)."""
+    finest-cell voxel, searched in its 27 neighbouring blocks (within 4 voxels). The rare voxel
+    farther from all of them, and every voxel within that reach of a finest cell on no block
+    (which the search cannot see), goes to :func:`point_labels`."""
 
     n = len(blocks.origins)
     lab = np.zeros((n, LEAF, LEAF, LEAF), np.int32)  # labels < 2^31; int64 was 0.6 GB at 1024^3
@@ -1439,16 +1463,37 @@ def block_labels(comp: Components, blocks, index_min) -> np.ndarray:
     # np.asarray: no copy of arrays already of the kernel's types (the coordinates: 240 MB at 1024^3)
     painted = _paint_cells(blocks._keys, np.asarray(tree.level, np.int64), np.asarray(tree.coords, np.int64),
                            np.asarray(comp.labels, np.int32), int(tree.depth), imin, lab, fine, True)
+    # the search reads the labels of finest cells at inactive voxels too (point_labels' nearest
+    # finest cell is any): the inactive voxels are cleared after it
+    lab, miss = _nearest_fine(blocks.active, lab, fine, block_neighbours27(blocks), _NEAR_OFFSETS)
     lab *= blocks.active
-    if painted != int((tree.level == tree.depth).sum()):  # a finest cell off the blocks: no local search
-        miss = blocks.active & (lab == 0)
-    else:
-        lab, miss = _nearest_fine(blocks.active, lab, fine, block_neighbours27(blocks), _NEAR_OFFSETS)
+    finest = tree.level == tree.depth
+    if painted != int(finest.sum()):
+        # a finest cell on no block may be nearer than the one found: the voxels within reach of
+        # such cells take the exact path (a knot's mesh at 512^3: 1.8M voxels went there, 1.3 s,
+        # when one such cell sent every voxel outside the kept cells to point_labels)
+        _near_off_block(tree, blocks, imin + tree.coords[finest], miss)
     if miss.any():
         b, i, j, k = np.nonzero(miss)
         ijk = blocks.origins[b] + np.stack([i, j, k], axis=1)
         lab[b, i, j, k] = point_labels(comp, ijk * blocks.voxel_size)
     return lab
+
+
+def _near_off_block(tree: Octree, blocks, finest_voxels: np.ndarray, miss: np.ndarray) -> None:
+    """Set ``miss`` at the active voxels outside every kept cell within _NEAR_R voxels of a
+    finest cell (voxel ``finest_voxels``) that lies on no block."""
+    off = finest_voxels[blocks.block_index((finest_voxels >> LEAF_LOG2) << LEAF_LOG2) < 0]
+    near = (off[:, None, :] + _NEAR_OFFSETS0[None]).reshape(-1, 3)
+    near = near[np.unique(pack_keys(near), return_index=True)[1]]  # not np.unique(axis=0): a row sort
+    origin = (near >> LEAF_LOG2) << LEAF_LOG2
+    row = blocks.block_index(origin)
+    near, origin, row = near[row >= 0], origin[row >= 0], row[row >= 0]
+    i, j, k = (near - origin).T
+    act = blocks.active[row, i, j, k]
+    near, row, i, j, k = near[act], row[act], i[act], j[act], k[act]
+    outside = tree.locate(near * blocks.voxel_size) < 0  # voxels in a kept cell keep its label
+    miss[row[outside], i[outside], j[outside], k[outside]] = True
 
 
 # --- section 4.3: separation fields ------------------------------------------------------------------

@@ -154,3 +154,45 @@ def test_short_tapes_are_not_shortened_further():
     assert tape.shortens and len(tape) < cc.SHORT_TAPE
     tree = cc.enumerate_octree(model, np.full(3, -1.0), 2.0, 6)
     assert all("mean_tape" not in lv for lv in tree.stats["levels"])
+
+
+@pytest.mark.parametrize("rfunc", ["min_max", "r0"])
+def test_mesh_cells_are_decided_by_the_surface(tmp_path, monkeypatch, rfunc):
+    """A closed mesh's cells are decided by its surface (TapePool.surface_sides, as voxelise's
+    descent does): a cell no triangle comes near takes the sign of one point. Every inside cell
+    so kept is inside (the field positive on a 3^3 lattice of its box), the border
+    cells, the count and the labels are those of the interval bounds alone, and fewer cells are
+    visited (the bounds left cells well inside unproven down to the finest level)."""
+    import trimesh
+
+    torus = trimesh.creation.torus(major_radius=0.45, minor_radius=0.14, major_sections=48, minor_sections=24)
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.2)
+    ball.apply_translation([0.0, 0.0, 0.55])
+    mesh = trimesh.util.concatenate([torus, ball])
+    path = tmp_path / "parts.off"
+    mesh.export(path)
+    model = node({"mesh": {"path": str(path), "rfunc": rfunc}})
+    origin, size, depth = np.array([-0.8, -0.8, -0.8]), 1.6, 7
+
+    def cells(tree, kind):
+        sel = tree.kind == kind
+        return {(int(lv), *map(int, c)) for lv, c in zip(tree.level[sel], tree.coords[sel], strict=True)}
+
+    found = cc.detect(model, origin, size, depth)
+    with monkeypatch.context() as m:
+        m.setattr(TapePool, "surface_sides", lambda self, lo, hi, tape_of=None: (np.zeros(len(lo), np.int8),
+                                                                                   np.zeros(len(lo))))
+        ref = cc.detect(model, origin, size, depth)
+    st, st_ref = found.tree.stats, ref.tree.stats
+    assert found.count == ref.count == 2
+    assert st["surface_tests"] > 0 and st_ref["surface_tests"] == 0
+    assert st["cells_visited"] < st_ref["cells_visited"]
+    assert cells(found.tree, cc.BORDER) == cells(ref.tree, cc.BORDER)
+    lo, hi = found.tree.boxes()
+    inner = found.tree.kind == cc.INSIDE
+    frac = np.stack(np.meshgrid(*[np.linspace(0.0, 1.0, 3)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    probe = (lo[inner][:, None] + frac[None] * (hi - lo)[inner][:, None]).reshape(-1, 3)
+    assert (model.evaluate(probe) > 0).all()  # the field's sign is containment (test_written_grids)
+    pts = np.random.default_rng(0).uniform(-0.8, 0.8, (20000, 3))
+    assert np.array_equal(cc.point_labels(found, pts), cc.point_labels(ref, pts))
+    assert np.allclose(found.volumes, ref.volumes, rtol=1e-12)

@@ -440,6 +440,21 @@ class TapePool:
             bt = tape_of[bs[:-1]]
         return eval_points(p, bs, bt, *self.arrays(), *self.oracle.arrays(), max(self.max_length, 1))
 
+    def surface_sides(self, lo: np.ndarray, hi: np.ndarray, tape_of: np.ndarray | None = None,
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """Per closed box lo[q]..hi[q] (world, (N, 3)) with tape ``tape_of[q]`` (None: tape 0),
+        :func:`_surface_cull` over the box: kind 1 when the tape is one closed mesh's clause at
+        the plain coordinates and no triangle comes near the box (the field has no zero there;
+        its sign is that of ``value``), 2 when one does (the surface may cross the box), 0 when
+        this does not apply (other tapes, open meshes, a point value too near 0 to trust)."""
+        n = len(lo)
+        tape_of = np.zeros(n, np.int64) if tape_of is None else np.asarray(tape_of, np.int64)
+        orc, odepth = self.oracle.arrays()
+        if n == 0 or orc[9].shape[0] == 0:
+            return np.zeros(n, np.int8), np.zeros(n)
+        return _surface_sides(np.ascontiguousarray(lo, dtype=np.float64), np.ascontiguousarray(hi, dtype=np.float64),
+                              tape_of, self.start, self.res, self.op, self.a, self.b, self.c, orc, odepth)
+
     def specialised(self, tape_of: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> TapePool:
         """Tape i of the result: tape ``tape_of[i]`` shortened to the closed box lo[i]..hi[i]
         (world, (N, 3)) by the interval decisions of :func:`bound_boxes` and :func:`specialise`:
@@ -1299,6 +1314,23 @@ def _bound_pass(lo, hi, dlo, dhi, decide, tape_of, start, length, res, op, a, b,
                 _bound_one(dlo[q], dhi[q], s, ln, op, a, b, c, rlo, rhi, choices, ch0, orc, sj, sv)
             _relevance(op, a, s, ln, res[tp], b, rlo, rhi, choices, ch0, tlo, thi)
     return flo, fhi
+
+
+@njit(parallel=True, cache=True)
+def _surface_sides(lo, hi, tape_of, start, res, op, a, b, c, orc, odepth):
+    """The kernel of :meth:`TapePool.surface_sides` (each box its own decision box)."""
+    n = lo.shape[0]
+    kind = np.zeros(n, np.int8)
+    value = np.zeros(n)
+    per = 64
+    for ch in prange((n + per - 1) // per):
+        sj = np.empty((3, odepth + 2), np.int64)
+        sv = np.empty((4, odepth + 2))
+        stack = np.empty(BVH_STACK, np.int64)
+        for q in range(ch * per, min(n, (ch + 1) * per)):
+            tp = tape_of[q]
+            kind[q], value[q] = _surface_cull(q, lo, hi, lo, hi, start[tp], res[tp], op, a, b, c, orc, sj, sv, stack)
+    return kind, value
 
 
 @njit(cache=True)

@@ -29,10 +29,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import prange
 
 from pipeline.model.base import Node
-from pipeline.model.expr import FormulaError, parse_formula
+from pipeline.model.expr import FormulaError, Param, Var, parse_formula
+from pipeline.model.tape import Tape, TapePool, compile_model
 from pipeline.sparse.grid import BlockGrid
+from pipeline.util.jit import njit
 
 VARIABLES = ("d",)
 
@@ -55,6 +58,51 @@ class AttributeFormula:
             self._env["d"] = 0.0
         return np.broadcast_to(np.asarray(out, dtype=np.float64), np.shape(x)).copy()
 
+    def lowered(self, t: float = 0.0) -> tuple[Tape, np.ndarray] | None:
+        """The formula as a tape of three inputs and what feeds each (:data:`SLOT_SOURCES`
+        rows: 0/1/2 the voxel's x/y/z, 3 its distance d, -1 nothing), or None when it reads all
+        four of x, y, z and d (a tape has three inputs) or does not trace. A coordinate keeps its
+        own input; d takes one the formula leaves free."""
+        used = _names(self.tree)
+        if {"x", "y", "z", "d"} <= used:
+            return None
+        src = np.array([a if "xyz"[a] in used else -1 for a in range(3)], np.int64)
+        if "d" in used:
+            src[int(np.flatnonzero(src < 0)[0])] = 3
+        tape = compile_model(_Lowered(self, src), t)
+        return None if tape is None else (tape, src)
+
+
+class _Lowered:
+    """An attribute formula as a model of three inputs for the tracer (pipeline.model.tape):
+    input a feeds the formula's x, y, z or d as ``src[a]`` says."""
+
+    def __init__(self, formula: AttributeFormula, src: np.ndarray):
+        self.formula, self.src = formula, src
+
+    def field(self, x, y, z, t):
+        inputs = (x, y, z)
+        feed = {int(v): inputs[a] for a, v in enumerate(self.src) if v >= 0}
+        self.formula._env["d"] = feed.get(3, 0.0)
+        try:
+            return self.formula.tree.field(feed.get(0, 0.0), feed.get(1, 0.0), feed.get(2, 0.0), t)
+        finally:
+            self.formula._env["d"] = 0.0
+
+
+def _names(tree: Node) -> set[str]:
+    """The variables (x y z t and the extra ones) a parsed formula reads."""
+    out, stack = set(), [tree]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, (Var, Param)):
+            out.add(item.args[0])
+        elif isinstance(item, Node):
+            stack.extend(getattr(item, "args", ()))
+        elif isinstance(item, (list, tuple)):
+            stack.extend(item)
+    return out
+
 
 def check_formula(src: str) -> str:
     """Pydantic validator: the formula parses with the attribute variables (x y z t d)."""
@@ -71,7 +119,7 @@ class AttributeVoxels:
 
     origins: np.ndarray  # (L,3) block origins of the eikonal result
     active: np.ndarray  # (L,8,8,8) voxels that carry the attribute
-    d: np.ndarray  # (L,8,8,8) distance used in the formula (0 where not active)
+    d: np.ndarray  # (L,8,8,8) float32 distance used in the formula (0 where not active)
     voxel_size: float
 
     def coordinates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -92,7 +140,7 @@ def attribute_voxels(result, hfrep: BlockGrid, outside: str = "inactive", band: 
     dist = result.distance
     inside = result.inside & dist.active
     active = inside.copy()
-    d = np.where(inside, dist.values.astype(np.float64), 0.0)
+    d = np.where(inside, dist.values, np.float32(0.0))  # float32 as solved: exact in a formula's float64
     if outside == "surface":
         near = (~result.inside) & dist.active & (dist.values <= band * dist.voxel_size) & hfrep.active
         active |= near
@@ -102,22 +150,109 @@ def attribute_voxels(result, hfrep: BlockGrid, outside: str = "inactive", band: 
 
 
 def evaluate_attribute(formulas: list[AttributeFormula], vox: AttributeVoxels, t: float = 0.0) -> np.ndarray:
-    """(L,8,8,8) for one formula, (L,8,8,8,3) for three (RGB); zero where not active.
+    """(L,8,8,8) float32 for one formula, (L,8,8,8,3) for three (RGB); zero where not active.
 
-    Raises ValueError naming the component and a point where a formula is not finite.
-    """
+    A formula that lowers to a tape (:meth:`AttributeFormula.lowered`) runs on the compiled
+    evaluator over the active voxels, a chunk of blocks at a time; one that reads all of x, y,
+    z and d runs node by node in NumPy. The same float64 values either way, rounded to float32
+    (the grids' type). Raises NonFiniteAttribute naming the component and the first voxel (in
+    block order) where a formula is not finite."""
+    m = vox.active
+    out = np.zeros(m.shape + ((len(formulas),) if len(formulas) > 1 else ()), np.float32)
+    for c, f in enumerate(formulas):
+        dst = out[..., c] if len(formulas) > 1 else out
+        low = f.lowered(t)
+        if low is None:
+            _evaluate_numpy(c, f, vox, t, dst)
+        else:
+            _evaluate_tape(c, low, vox, dst)
+    return out
+
+
+ATTRIBUTE_CHUNK = 8192  # blocks per compiled evaluation (4M voxels at most: 100 MB of points)
+
+
+def _evaluate_tape(c: int, low: tuple[Tape, np.ndarray], vox: AttributeVoxels, dst: np.ndarray) -> None:
+    tape, src = low
+    pool = TapePool.single(tape)
+    m = vox.active
+    room = np.empty((0, 3))  # one buffer for every chunk: its pages are faulted in once
+    for a in range(0, len(m), ATTRIBUTE_CHUNK):
+        b = min(a + ATTRIBUTE_CHUNK, len(m))
+        counts = m[a:b].reshape(b - a, -1).sum(axis=1)
+        offs = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        if len(room) < offs[-1]:
+            room = np.empty((int(offs[-1]), 3))
+        pts = room[:int(offs[-1])]
+        _slot_points(vox.origins[a:b], m[a:b], vox.d[a:b], vox.voxel_size, src, offs, pts)
+        vals = pool.evaluate(pts)
+        bad = ~np.isfinite(vals)
+        if bad.any():
+            _raise_first(c, vox, a, b, bad)
+        _scatter(m[a:b], offs, vals, dst[a:b])
+
+
+def _raise_first(c: int, vox: AttributeVoxels, a: int, b: int, bad: np.ndarray) -> None:
+    """NonFiniteAttribute at the first active voxel of blocks a..b-1 whose value is bad."""
+    bb, i, j, k = np.nonzero(vox.active[a:b])
+    n = int(np.flatnonzero(bad)[0])
+    blk, ii, jj, kk = a + bb[n], i[n], j[n], k[n]
+    p = (vox.origins[blk] + (ii, jj, kk)) * vox.voxel_size
+    raise NonFiniteAttribute(c, tuple(p), vox.d[blk, ii, jj, kk])
+
+
+def _evaluate_numpy(c: int, f: AttributeFormula, vox: AttributeVoxels, t: float, dst: np.ndarray) -> None:
     x, y, z = vox.coordinates()
     m = vox.active
-    comps = []
-    for c, f in enumerate(formulas):
-        vals = np.zeros(m.shape)
-        vals[m] = f(x[m], y[m], z[m], vox.d[m], t)
-        bad = m & ~np.isfinite(vals)
-        if bad.any():
-            b, i, j, k = np.argwhere(bad)[0]
-            raise NonFiniteAttribute(c, (x[b, i, j, k], y[b, i, j, k], z[b, i, j, k]), vox.d[b, i, j, k])
-        comps.append(vals)
-    return comps[0] if len(comps) == 1 else np.stack(comps, axis=-1)
+    vals = np.zeros(m.shape)
+    vals[m] = f(x[m], y[m], z[m], vox.d[m], t)
+    bad = m & ~np.isfinite(vals)
+    if bad.any():
+        b, i, j, k = np.argwhere(bad)[0]
+        raise NonFiniteAttribute(c, (x[b, i, j, k], y[b, i, j, k], z[b, i, j, k]), vox.d[b, i, j, k])
+    dst[...] = vals
+
+
+SLOT_SOURCES = ("x", "y", "z", "d")  # what a lowered formula's input reads, by index
+
+
+@njit(cache=True, parallel=True)
+def _slot_points(origins, active, d, h, src, offs, pts):
+    """The tape's inputs at the active voxels of each block, in block and C order from
+    ``offs[b]``: input a is the voxel centre's coordinate src[a] (0..2), its distance (3) or 0."""
+    for b in prange(origins.shape[0]):
+        n = offs[b]
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if not active[b, i, j, k]:
+                        continue
+                    for a in range(3):
+                        s = src[a]
+                        if s == 0:
+                            pts[n, a] = (origins[b, 0] + i) * h
+                        elif s == 1:
+                            pts[n, a] = (origins[b, 1] + j) * h
+                        elif s == 2:
+                            pts[n, a] = (origins[b, 2] + k) * h
+                        elif s == 3:
+                            pts[n, a] = np.float64(d[b, i, j, k])
+                        else:
+                            pts[n, a] = 0.0
+                    n += 1
+
+
+@njit(cache=True, parallel=True)
+def _scatter(active, offs, vals, dst):
+    """dst's active voxels (block and C order, from offs[b]) = float32(vals)."""
+    for b in prange(active.shape[0]):
+        n = offs[b]
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if active[b, i, j, k]:
+                        dst[b, i, j, k] = np.float32(vals[n])
+                        n += 1
 
 
 class NonFiniteAttribute(ValueError):

@@ -113,6 +113,29 @@ def test_leaf_builder_makes_copy_from_arrays_grid(case):
 
 
 @pytest.mark.skipif(vg._leafbuild is None, reason="the leaf builder is not built here")
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_blocks())
+def test_vec3_attribute_grid_is_that_of_copy_from_array(case):
+    """attribute_grid's Vec3S grid from the compiled builder (add_vec3_blocks) is the one the
+    per-block copyFromArray under a sentinel background makes: every value and box, active or
+    not, the same; active voxels at (0, 0, 0), constant all-active blocks (tiles), empty blocks."""
+    origins, values, active, *_ = case
+    rng = np.random.default_rng(len(origins))
+    rgb = np.stack([values, rng.normal(size=values.shape), np.abs(values)], -1).astype(np.float32)
+    rgb = np.nan_to_num(rgb)  # attributes are finite (evaluate_attribute refuses the others)
+    rgb[0, :2] = 0.0  # active voxels at the background keep their activity
+    rgb[-1] = rgb[-1, 0, 0, 0]  # one constant block: a tile where it is all active
+    rgb[~active] = 0.0
+    with _path(False):
+        old = vg.attribute_grid("color", rgb, origins, active, 0.5)
+    with _path(True):
+        new = vg.attribute_grid("color", rgb, origins, active, 0.5)
+    assert new.activeVoxelCount() == old.activeVoxelCount() == int(active.sum())
+    assert _items(new) == _items(old)
+    assert new.background == old.background and new.name == old.name == "color"
+
+
+@pytest.mark.skipif(vg._leafbuild is None, reason="the leaf builder is not built here")
 def test_leaf_builder_refuses_bad_arrays():
     grid = vdb.FloatGrid(0.0)
     values = np.zeros((1, 8, 8, 8), np.float32)

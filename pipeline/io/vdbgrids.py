@@ -315,12 +315,21 @@ def float_grid(leaves: LeafSource | BlockGrid, name: str, background: float | No
 def attribute_grid(name: str, values: np.ndarray, origins: np.ndarray, active: np.ndarray, voxel_size: float):
     """pyopenvdb FloatGrid (values (L,8,8,8)) or Vec3SGrid (values (L,8,8,8,3)), background 0.
 
-    Every voxel of ``active`` is active, also where its value equals the background 0:
-    ``copyFromArray`` deactivates values equal to the grid's background, so the grid is
-    written with a sentinel background that no value takes and then switched to 0
+    Every voxel of ``active`` is active, also where its value equals the background 0: a
+    Vec3S grid's leaves are made so by the compiled builder (leafbuild.cpp add_vec3_blocks);
+    ``copyFromArray`` deactivates values equal to the grid's background, so elsewhere the grid
+    is written with a sentinel background that no value takes and then switched to 0
     (OpenVDB's changeBackground replaces only inactive sentinel values).
     """
     vector = values.ndim == 5
+    if vector and _leafbuild is not None and hasattr(_leafbuild, "add_vec3_blocks"):
+        grid = vdb.Vec3SGrid((0.0, 0.0, 0.0))  # every active voxel on, whatever its value: no sentinel
+        _leafbuild.add_vec3_blocks(grid, np.ascontiguousarray(origins, dtype=np.int64),
+                                   np.ascontiguousarray(values, dtype=np.float32), np.ascontiguousarray(active))
+        grid.prune((0.0, 0.0, 0.0))
+        grid.name = name
+        grid.transform = linear_transform(voxel_size)
+        return grid
     finite = values[active]
     sentinel = float(np.float32(2.0 * math.floor(np.abs(finite).max(initial=0.0)) + 2.0))
     if vector:

@@ -141,6 +141,7 @@ HFREP_BYTES_PER_VOXEL = 30  # measured peak of the hfrep stage per interior voxe
 # 1.75 GiB over what voxelise leaves for ~306 M shell voxels as estimated below (~6 bytes);
 # 10 keeps a margin (the old 30 refused the demo at 2048^3 with 37 GiB that needs ~12)
 SHELL_BYTES_PER_VOXEL = 10
+ATTRIBUTE_BYTES_PER_COMPONENT = 6  # per interior voxel and attribute component: its grid (~4.5) + a margin for the values being made
 SHELL_BLOCKS_PER_LEAF = 5  # fine blocks of a coarse-interior hfrep solve per band leaf (4.4 measured, demo 512^3)
 
 
@@ -152,7 +153,11 @@ def estimate_bytes(job, p: Params, band: BandEstimate) -> tuple[float, str]:
         voxels = estimate_interior_voxels(job.model, job.domain, band.voxels, job.t)
     else:
         voxels = SHELL_BLOCKS_PER_LEAF * max(band.bytes - WORK_BYTES, 0.0) / LEAF_PEAK_BYTES * 512.0
-    need = band.bytes + (HFREP_BYTES_PER_VOXEL if fine else SHELL_BYTES_PER_VOXEL) * voxels
+    per = HFREP_BYTES_PER_VOXEL if fine else SHELL_BYTES_PER_VOXEL
+    # each attribute's grid stays in memory until the export (and its float32 values while it
+    # is made): the microstructure's two at 1024^3 peaked 11 % over the estimate without them
+    per += ATTRIBUTE_BYTES_PER_COMPONENT * sum(1 if a.formula is not None else 3 for a in p.attributes)
+    need = band.bytes + per * voxels
     what = "interior distance" if fine else "distance near the surface"
     return need, f"its narrow band and the {what} of the hfrep stage"
 

@@ -141,7 +141,8 @@ HFREP_BYTES_PER_VOXEL = 30  # measured peak of the hfrep stage per interior voxe
 # 1.75 GiB over what voxelise leaves for ~306 M shell voxels as estimated below (~6 bytes);
 # 10 keeps a margin (the old 30 refused the demo at 2048^3 with 37 GiB that needs ~12)
 SHELL_BYTES_PER_VOXEL = 10
-ATTRIBUTE_BYTES_PER_COMPONENT = 6  # per interior voxel and attribute component: its grid (~4.5) + a margin for the values being made
+# per interior voxel and attribute component: its grid (~4.5 bytes) and a margin for the values being made
+ATTRIBUTE_BYTES_PER_COMPONENT = 6
 SHELL_BLOCKS_PER_LEAF = 5  # fine blocks of a coarse-interior hfrep solve per band leaf (4.4 measured, demo 512^3)
 
 

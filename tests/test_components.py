@@ -907,3 +907,23 @@ def test_separation_makes_the_octrees_ancestor_sets_once() -> None:
     kept = found.tree._ancestors
     assert kept is not None and cc._ancestor_sets(found.tree) is kept
     assert all(len(lo) > 0 for lo, _ in faces)
+
+
+@pytest.mark.parametrize("depth", [5, 7])
+def test_ancestor_sets_are_the_cells_with_kept_descendants(depth) -> None:
+    """_ancestor_sets, made bottom up (each level the parents of the next one's kept cells and
+    ancestors), equals its definition: per level, every cell some deeper kept cell lies in."""
+    model = node({"union": [sphere((-0.6 + 0.3 * i, 0.05 * i, 0), 0.08 + 0.02 * i) for i in range(5)]})
+    tree = cc.detect(model, *cube(), depth).tree
+    got = cc._ancestor_sets(tree)
+    assert len(got) == depth + 1 and len(got[depth]) == 0
+    for lv in range(depth + 1):
+        deeper = tree.level > lv
+        want = np.unique(cc.pack(tree.coords[deeper] >> (tree.level[deeper] - lv)[:, None])) if deeper.any() \
+            else np.zeros(0, np.int64)
+        assert np.array_equal(got[lv], want), lv
+    found = cc.detect(model, *cube(), depth)  # the faces from a cluster's rows, as the stage gives them
+    for k in range(1, found.count + 1):
+        a = cc.boundary_faces(found, k)
+        b = cc.boundary_faces(found, k, np.flatnonzero(found.labels == k))
+        assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))

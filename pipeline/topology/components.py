@@ -1935,42 +1935,34 @@ def boundary_faces(comp: Components, label: int, rows: np.ndarray | None = None)
     the same cluster, as degenerate boxes (lo, hi). A face next to finer cells is split into
     quarters until each piece faces one kept cell, no cell, or a single finer level (section
     4.3.1, the octree surface)."""
-    lo, hi, _ = _faces_of(comp, np.flatnonzero(comp.labels == label) if rows is None else rows)
-    return lo, hi
-
-
-def _faces_of(comp: Components, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The boundary faces of the cells ``rows``, each against the cells of its own label: (lo,
-    hi, label of each face)."""
     tree = comp.tree
     anc = _ancestor_sets(tree)
-    out_lo, out_hi, out_lab = [], [], []
+    rows = np.flatnonzero(comp.labels == label) if rows is None else rows
+    out_lo, out_hi = [], []
     for d in _FACES:
         axis = int(np.nonzero(d)[0][0])
-        lv, cs, lab = tree.level[rows], tree.coords[rows], comp.labels[rows]
+        lv, cs = tree.level[rows], tree.coords[rows]
         while len(lv):
-            nxt_l, nxt_c, nxt_b = [], [], []
+            nxt_l, nxt_c = [], []
             for level in np.unique(lv):
                 sel = lv == level
-                c, b = cs[sel], lab[sel]
+                c = cs[sel]
                 nb = c + d
                 found = tree.find(int(level), nb)
-                same = (found >= 0) & (comp.labels[np.maximum(found, 0)] == b)
+                same = (found >= 0) & (comp.labels[np.maximum(found, 0)] == label)
                 deeper = (found < 0) & _has_descendants(anc, int(level), nb)
                 face = ~same & ~deeper
                 if face.any():
                     lo, hi = _face_box(tree, int(level), c[face], d, axis)
-                    out_lo.append(lo), out_hi.append(hi), out_lab.append(b[face])
+                    out_lo.append(lo), out_hi.append(hi)
                 if deeper.any():
                     kids = _face_children(c[deeper], d, axis)
                     nxt_l.append(np.full(len(kids), level + 1)), nxt_c.append(kids)
-                    nxt_b.append(np.repeat(b[deeper], len(kids) // int(deeper.sum())))
             lv = np.concatenate(nxt_l) if nxt_l else np.zeros(0, np.int64)
             cs = np.concatenate(nxt_c) if nxt_c else np.zeros((0, 3), np.int64)
-            lab = np.concatenate(nxt_b) if nxt_b else np.zeros(0, comp.labels.dtype)
     if not out_lo:
-        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, comp.labels.dtype)
-    return np.concatenate(out_lo), np.concatenate(out_hi), np.concatenate(out_lab)
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    return np.concatenate(out_lo), np.concatenate(out_hi)
 
 
 def _ancestor_sets(tree: Octree) -> list[np.ndarray]:

@@ -927,3 +927,55 @@ def test_ancestor_sets_are_the_cells_with_kept_descendants(depth) -> None:
         a = cc.boundary_faces(found, k)
         b = cc.boundary_faces(found, k, np.flatnonzero(found.labels == k))
         assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def _faces_by_levels(comp, label):
+    """boundary_faces by its definition, level by level in NumPy (the walk it had before it was
+    compiled): per direction, a face against another label or no cell, the four children on the
+    face against finer cells."""
+    tree = comp.tree
+    anc = cc._ancestor_sets(tree)
+    rows = np.flatnonzero(comp.labels == label)
+    out = []
+    for d in cc._FACES:
+        axis = int(np.nonzero(d)[0][0])
+        lv, cs = tree.level[rows], tree.coords[rows]
+        while len(lv):
+            nxt_l, nxt_c = [], []
+            for level in np.unique(lv):
+                c = cs[lv == level]
+                found = tree.find(int(level), c + d)
+                same = (found >= 0) & (comp.labels[np.maximum(found, 0)] == label)
+                deeper = (found < 0) & cc._has_descendants(anc, int(level), c + d)
+                face = ~same & ~deeper
+                if face.any():
+                    out.append(np.concatenate(cc._face_box(tree, int(level), c[face], d, axis), axis=1))
+                if deeper.any():
+                    kids = cc._face_children(c[deeper], d, axis)
+                    nxt_l.append(np.full(len(kids), level + 1)), nxt_c.append(kids)
+            lv = np.concatenate(nxt_l) if nxt_l else np.zeros(0, np.int64)
+            cs = np.concatenate(nxt_c) if nxt_c else np.zeros((0, 3), np.int64)
+    faces = np.concatenate(out) if out else np.zeros((0, 6))
+    return faces[np.lexsort(faces.T[::-1])]
+
+
+@pytest.mark.parametrize("case", ["spheres5", "spheres7", "cut"])
+def test_compiled_boundary_faces_are_the_octree_surface(case) -> None:
+    """The compiled walk gives every cluster the faces of the level-by-level definition (the
+    same boxes, in another order), on the detected tree and the coarsest same-count one; with
+    a piece the domain cuts, faces of several sizes (cells of several levels on its surface)."""
+    if case == "cut":
+        _, found, *_ = _two_sphere_blocks(0.12, True)
+    else:
+        model = node({"union": [sphere((-0.6 + 0.3 * i, 0.05 * i, 0), 0.08 + 0.02 * i) for i in range(5)]})
+        found = cc.detect(model, *cube(), int(case[-1]))
+    sep, _ = cc.coarsest_same_count(found)
+    sizes = 0
+    for comp in (found, sep):
+        for k in range(1, comp.count + 1):
+            lo, hi = cc.boundary_faces(comp, k)
+            got = np.concatenate([lo, hi], axis=1)
+            got = got[np.lexsort(got.T[::-1])]
+            assert len(got) > 0 and np.array_equal(got, _faces_by_levels(comp, k))
+            sizes = max(sizes, len(np.unique(np.round((hi - lo).max(axis=1), 12))))
+    assert sizes > 1 or case != "cut"

@@ -1934,35 +1934,82 @@ def boundary_faces(comp: Components, label: int, rows: np.ndarray | None = None)
     """Faces of the cluster's cells (``rows``, ascending, when known) not shared with a cell of
     the same cluster, as degenerate boxes (lo, hi). A face next to finer cells is split into
     quarters until each piece faces one kept cell, no cell, or a single finer level (section
-    4.3.1, the octree surface)."""
+    4.3.1, the octree surface). One compiled walk per cell and face, on both cores (in NumPy,
+    level by level, the 89 pieces of the solid noise at 512^3 took 7.6 s); faces in the order of
+    the cells, then the six directions, then the walk."""
     tree = comp.tree
+    rows = np.flatnonzero(comp.labels == label) if rows is None else np.asarray(rows, np.int64)
     anc = _ancestor_sets(tree)
-    rows = np.flatnonzero(comp.labels == label) if rows is None else rows
-    out_lo, out_hi = [], []
-    for d in _FACES:
-        axis = int(np.nonzero(d)[0][0])
-        lv, cs = tree.level[rows], tree.coords[rows]
-        while len(lv):
-            nxt_l, nxt_c = [], []
-            for level in np.unique(lv):
-                sel = lv == level
-                c = cs[sel]
-                nb = c + d
-                found = tree.find(int(level), nb)
-                same = (found >= 0) & (comp.labels[np.maximum(found, 0)] == label)
-                deeper = (found < 0) & _has_descendants(anc, int(level), nb)
-                face = ~same & ~deeper
-                if face.any():
-                    lo, hi = _face_box(tree, int(level), c[face], d, axis)
-                    out_lo.append(lo), out_hi.append(hi)
-                if deeper.any():
-                    kids = _face_children(c[deeper], d, axis)
-                    nxt_l.append(np.full(len(kids), level + 1)), nxt_c.append(kids)
-            lv = np.concatenate(nxt_l) if nxt_l else np.zeros(0, np.int64)
-            cs = np.concatenate(nxt_c) if nxt_c else np.zeros((0, 3), np.int64)
-    if not out_lo:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    return np.concatenate(out_lo), np.concatenate(out_hi)
+    aoff = np.concatenate([[0], np.cumsum([len(a) for a in anc])]).astype(np.int64)
+    akeys = np.concatenate(anc).astype(np.int64) if len(anc) else np.zeros(0, np.int64)
+    keys, trows, off, levels, coarse, c = tree.flat_tables()
+    args = (rows, int(label), levels, np.ascontiguousarray(tree.coords, dtype=np.int64),
+            np.ascontiguousarray(comp.labels, dtype=np.int64), keys, trows, off, coarse, c, akeys, aoff,
+            np.asarray(tree.origin, np.float64), float(tree.size), tree.depth)
+    count = np.zeros(len(rows) + 1, np.int64)
+    dirs = np.zeros(len(rows), np.uint8)  # the directions with a face, per cell: the write walks only those
+    _walk_faces(*args, count, dirs, np.zeros((0, 3)), np.zeros((0, 3)), False)
+    start = np.concatenate([[0], np.cumsum(count[:-1])]).astype(np.int64)
+    lo, hi = np.empty((int(start[-1]), 3)), np.empty((int(start[-1]), 3))
+    _walk_faces(*args, start, dirs, lo, hi, True)
+    return lo, hi
+
+
+@njit(cache=True, parallel=True)
+def _walk_faces(rows, label, levels, coords, labels, keys, trows, off, coarse, c, akeys, aoff, origin, size, depth,
+                at, dirs, lo, hi, write):
+    """Count (``write`` False: into at[t], and the directions that have faces into the bits of
+    dirs[t]) or write (from at[t], those directions only) the boundary faces of cell rows[t]:
+    per direction, a face against a cell of another label or none, or, against finer cells,
+    the walk into the four children on that face (a stack per cell)."""
+    for t in numba.prange(rows.shape[0]):
+        r = rows[t]
+        stack = np.empty((4 * (depth + 1) + 1, 4), np.int64)
+        n = at[t] if write else 0
+        for f in range(6):
+            if write and not (dirs[t] >> f) & 1:
+                continue
+            first = n
+            axis, sgn = f >> 1, 1 - 2 * (f & 1)
+            stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3] = levels[r], coords[r, 0], coords[r, 1], coords[r, 2]
+            top = 1
+            while top > 0:
+                top -= 1
+                lv, x, y, z = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
+                nx, ny, nz = x + sgn * (axis == 0), y + sgn * (axis == 1), z + sgn * (axis == 2)
+                found = _find_one(nx, ny, nz, lv, keys, trows, off, levels, coarse, c)
+                if found >= 0 and labels[found] == label:
+                    continue
+                if found < 0 and _has_descendant(akeys, aoff, lv, nx, ny, nz):
+                    side = 1 if sgn > 0 else 0
+                    for q in range(4):  # the children of (x, y, z) on this face: (u, v) on the other axes
+                        u, v = q & 1, q >> 1
+                        cx = 2 * x + (side if axis == 0 else u)
+                        cy = 2 * y + (side if axis == 1 else (u if axis == 0 else v))
+                        cz = 2 * z + (side if axis == 2 else v)
+                        stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3] = lv + 1, cx, cy, cz
+                        top += 1
+                    continue
+                if write:
+                    e = size / (1 << lv)
+                    for a in range(3):
+                        lo[n, a] = origin[a] + (x, y, z)[a] * e
+                        hi[n, a] = lo[n, a] + e
+                    plane = hi[n, axis] if sgn > 0 else lo[n, axis]
+                    lo[n, axis], hi[n, axis] = plane, plane
+                n += 1
+            if not write and n > first:
+                dirs[t] |= 1 << f
+        if not write:
+            at[t] = n
+
+
+@njit(cache=True, inline="always")
+def _has_descendant(akeys, aoff, lv, x, y, z):
+    """Whether the cell (lv, x, y, z) has kept descendants (:func:`_ancestor_sets`)."""
+    if x < 0 or y < 0 or z < 0 or x >= (1 << lv) or y >= (1 << lv) or z >= (1 << lv):
+        return False
+    return _bsearch(akeys, aoff[lv], aoff[lv + 1], key3(x, y, z)) >= 0
 
 
 def _ancestor_sets(tree: Octree) -> list[np.ndarray]:

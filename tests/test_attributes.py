@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from pipeline.distance import attributes as attr
@@ -46,7 +46,8 @@ def test_lowered_formulas_read_their_variables_from_the_right_inputs(src, inputs
     got = attr.evaluate_attribute([f], vox, 0.25)
     want = numpy_values([src], vox, 0.25, monkeypatch)
     assert got.dtype == np.float32 and np.array_equal(got, want)
-    assert not got[~vox.active].any() and got[vox.active].std() > 0 or src == "3.5"
+    assert not got[~vox.active].any()
+    assert got[vox.active].std() > 0 or src == "3.5"
 
 
 def test_a_formula_of_x_y_z_and_d_keeps_the_numpy_path(monkeypatch):
@@ -85,6 +86,10 @@ def test_compiled_attributes_equal_the_numpy_evaluation(rgb, t, monkeypatch):
     """Random formulas (one, or three for RGB): the compiled values are the NumPy ones rounded to
     float32 (one float32 unit where a libm function rounds differently)."""
     vox = voxels(3, 60)
+    try:  # a constant part that overflows (exp(exp(pi^2))) is a config error, not a formula to run
+        [attr.AttributeFormula(f) for f in rgb]
+    except attr.FormulaError:
+        assume(False)
     try:
         want = numpy_values(rgb, vox, t, monkeypatch)
     except attr.NonFiniteAttribute as e:  # exp(exp(exp(2))): both report the same voxel

@@ -193,7 +193,8 @@ def _evaluate_tape(c: int, low: tuple[Tape, np.ndarray], vox: AttributeVoxels, d
 
 
 def _raise_first(c: int, vox: AttributeVoxels, a: int, b: int, bad: np.ndarray) -> None:
-    """NonFiniteAttribute at the first active voxel of blocks a..b-1 whose value is bad."""
+    """NonFiniteAttribute at the first active voxel of blocks a..b-1 whose value is bad (``bad``:
+    per active voxel of those blocks, in block and C order)."""
     bb, i, j, k = np.nonzero(vox.active[a:b])
     n = int(np.flatnonzero(bad)[0])
     blk, ii, jj, kk = a + bb[n], i[n], j[n], k[n]
@@ -204,13 +205,11 @@ def _raise_first(c: int, vox: AttributeVoxels, a: int, b: int, bad: np.ndarray) 
 def _evaluate_numpy(c: int, f: AttributeFormula, vox: AttributeVoxels, t: float, dst: np.ndarray) -> None:
     x, y, z = vox.coordinates()
     m = vox.active
-    vals = np.zeros(m.shape)
-    vals[m] = f(x[m], y[m], z[m], vox.d[m], t)
-    bad = m & ~np.isfinite(vals)
+    vals = f(x[m], y[m], z[m], vox.d[m], t)  # the active voxels in block and C order
+    bad = ~np.isfinite(vals)
     if bad.any():
-        b, i, j, k = np.argwhere(bad)[0]
-        raise NonFiniteAttribute(c, (x[b, i, j, k], y[b, i, j, k], z[b, i, j, k]), vox.d[b, i, j, k])
-    dst[...] = vals
+        _raise_first(c, vox, 0, len(m), bad)
+    dst[m] = vals
 
 
 SLOT_SOURCES = ("x", "y", "z", "d")  # what a lowered formula's input reads, by index

@@ -43,7 +43,8 @@ from scipy.sparse.csgraph import connected_components
 
 from pipeline.topology import components as cc
 
-_STAT_SUMS = ("affine_tests", "affine_skipped", "cells_visited", "continuation_cells", "corner_evaluations")
+_STAT_SUMS = ("affine_tests", "affine_skipped", "surface_tests", "cells_visited", "continuation_cells",
+              "corner_evaluations")
 
 
 # --- the split -------------------------------------------------------------------------------------

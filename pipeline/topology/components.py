@@ -925,7 +925,8 @@ def enumerate_in_brick(model: Node, origin, size: float, depth: int, t: float = 
     cache = _CornerCache(model, origin, size / 2**depth, t)
     tapes = CellTapes.start(model, cache.tape)  # None: the model is bounded and evaluated as a whole
     whole = TapePool.single(cache.tape) if tapes is None and cache.tape is not None else None
-    st = {"affine_tests": 0, "affine_skipped": 0, "cells_visited": 0, "continuation_cells": 0, "levels": []}
+    st = {"affine_tests": 0, "affine_skipped": 0, "surface_tests": 0, "cells_visited": 0, "continuation_cells": 0,
+          "levels": []}
     kept_l, kept_c, kept_k, kept_p = [], [], [], []
     cells = np.zeros((1, 3), np.int64)
     signs = _corner_signs(cache, cells, 1 << depth) if continuation else None
@@ -1015,7 +1016,7 @@ def _bounds(model, lo, hi, t, st, rows, tapes: CellTapes | None, whole: TapePool
         kind, v = pool.surface_sides(lo, hi, tape_of)
         flo[kind == 1] = fhi[kind == 1] = v[kind == 1]
         rest = kind == 0
-        st["surface_tests"] = st.get("surface_tests", 0) + int(len(lo) - rest.sum())
+        st["surface_tests"] += int(len(lo) - rest.sum())
     if rest.any():
         sel = np.flatnonzero(rest)
         flo[sel], fhi[sel] = (_affine(model, lo[sel], hi[sel], t) if tapes is None

@@ -327,20 +327,16 @@ def attribute_grid(name: str, values: np.ndarray, origins: np.ndarray, active: n
         _leafbuild.add_vec3_blocks(grid, np.ascontiguousarray(origins, dtype=np.int64),
                                    np.ascontiguousarray(values, dtype=np.float32), np.ascontiguousarray(active))
         grid.prune((0.0, 0.0, 0.0))
-        grid.name = name
-        grid.transform = linear_transform(voxel_size)
-        return grid
-    finite = values[active]
-    sentinel = float(np.float32(2.0 * math.floor(np.abs(finite).max(initial=0.0)) + 2.0))
-    if vector:
-        grid = vdb.Vec3SGrid((sentinel,) * 3)
-        dense = np.where(active[..., None], values, sentinel).astype(np.float32)
+    elif vector:
+        grid = vdb.Vec3SGrid((_sentinel(values, active),) * 3)
+        dense = np.where(active[..., None], values, grid.background[0]).astype(np.float32)
         for b, o in enumerate(origins):
             if active[b].any():
                 grid.copyFromArray(np.ascontiguousarray(dense[b]), tuple(int(c) for c in o))
         grid.background = (0.0, 0.0, 0.0)
         grid.prune((0.0, 0.0, 0.0))
     else:
+        sentinel = _sentinel(values, active)
         grid = vdb.FloatGrid(sentinel)
         write_leaves(grid, BlockGrid(voxel_size, sentinel, origins, values.astype(np.float32), active))
         grid.background = 0.0
@@ -348,6 +344,11 @@ def attribute_grid(name: str, values: np.ndarray, origins: np.ndarray, active: n
     grid.name = name
     grid.transform = linear_transform(voxel_size)
     return grid
+
+
+def _sentinel(values: np.ndarray, active: np.ndarray) -> float:
+    """A float32 background that no active value takes (an even integer above them all)."""
+    return float(np.float32(2.0 * math.floor(np.abs(values[active]).max(initial=0.0)) + 2.0))
 
 
 # --- tiles ----------------------------------------------------------------------------------

@@ -516,6 +516,34 @@ def test_previews_exist_sized_and_not_blank(grids: dict, preview_paths: list[Pat
     assert blue > 0.02 and orange > 0.02  # both components coloured
 
 
+@pytest.mark.parametrize("order", ["as given", "reversed"])
+def test_each_slice_picture_is_what_a_fresh_figure_draws(grids: dict, order: str) -> None:
+    """The slice sheet draws its axes once and each grid over them: every grid's picture, drawn
+    after the others on the shared sheet, is pixel for pixel the picture of a sheet made for it
+    alone (nothing of an earlier grid's colour bar, contours or image is left, no panel moves)."""
+    box = vtkio.union_active_bbox(grids.values())
+    assert box is not None
+    lo, hi = box
+    ref = previews.centre_slices(grids["frep"], lo, hi, VOXEL)
+    names = list(grids) if order == "as given" else list(grids)[::-1]
+
+    def picture(sheet: previews.SliceSheet, name: str) -> np.ndarray:
+        sheet.draw(name, grids[name], previews.centre_slices(grids[name], lo, hi, VOXEL), ref, 0.0)
+        out = sheet.rgb()
+        sheet.clear()
+        return out
+
+    slices = previews.centre_slices(grids[names[0]], lo, hi, VOXEL)
+    shared = previews.SliceSheet(slices, 100)
+    kinds = set()
+    for name in names:
+        alone = picture(previews.SliceSheet(slices, 100), name)
+        assert np.array_equal(picture(shared, name), alone), name
+        kinds.add(previews._kind(name, grids[name], (0.0, 1.0) if previews.is_vector(grids[name])
+                                 else previews.value_range(grids[name], slices)))
+    assert kinds == {"signed", "sequential", "labels", "rgb"}  # every way a grid is drawn
+
+
 def test_preview_file_names_are_safe() -> None:
     assert previews.safe_name("color") == "color" and previews.safe_name("a/b c") == "a_b_c"
 

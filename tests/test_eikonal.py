@@ -367,3 +367,39 @@ def test_red_black_waves_give_the_same_field_on_any_thread_count(monkeypatch) ->
         numba.set_num_threads(before)
     assert all(np.array_equal(fields[0], f) for f in fields[1:])
     assert np.isfinite(fields[0]).all() and fields[0].max() > 20 * h
+
+
+@pytest.mark.parametrize(("name", "n", "gain"), [("sphere", 256, 0.7), ("torus", 128, None)])
+def test_waves_in_distance_order_same_field_fewer_updates(monkeypatch, name: str, n: int, gain) -> None:
+    """The FIM takes its list in order of distance (fim.WINDOW): against the plain FIM (every
+    listed block in every wave) the same distances within the second-order scheme's settling
+    (a hundredth of a voxel), as accurate against the exact distance, and on a deep interior
+    far fewer voxel updates (the sphere at 256^3: 7.1 -> 4.4 per voxel; the torus's interior,
+    14 voxels deep, gains nothing)."""
+    from functools import partial
+
+    import pipeline.distance.eikonal as eik
+    import pipeline.distance.fim as fim
+
+    fn = SHAPES[name]
+    frep, dom = band_grid(fn, n)
+    h = 2.0 / n
+    ordered = solve_distance(frep, 3 * h, dom)
+    monkeypatch.setattr(eik, "fim", partial(fim.fim, window=np.inf))
+    plain = solve_distance(frep, 3 * h, dom)
+    assert ordered.stats["converged"] and plain.stats["converged"]
+    a, b = ordered.distance, plain.distance
+    assert np.array_equal(a.origins, b.origins)
+    both = a.active & b.active
+    assert (a.active ^ b.active).sum() <= 1e-4 * both.sum()  # accepted or not at the cut-off
+    assert np.abs(a.values - b.values)[both].max() < 0.01 * h
+    errs = []
+    for res in (ordered, plain):
+        ijk, v = signed_distance_blocks(res).active_voxels()
+        err = np.abs(v + fn(ijk * h)) / h
+        errs.append((err.max(), err.mean()))
+    assert errs[0][0] <= errs[1][0] + 0.01 and errs[0][1] <= errs[1][1] * 1.05
+    per_voxel = [r.stats["voxel_updates"] / r.stats["solved_voxels"] for r in (ordered, plain)]
+    print(f"\n{name}: updates per voxel {per_voxel[0]:.2f} ordered, {per_voxel[1]:.2f} plain; errors {errs}")
+    if gain:
+        assert per_voxel[0] < gain * per_voxel[1]

@@ -72,22 +72,23 @@ def test_fim_dirty_faces_give_the_full_sweeps_result() -> None:
     got = saved["d"].copy()
     seeds = np.nonzero((saved["state"] == fm.FROZEN).reshape(len(got), -1).any(axis=1))[0]
     ref = saved["d"].copy()
-    lists, counts, on_list, dirty = fm._seed_lists(saved["colour"], seeds, len(ref))
+    lists, counts, on_list, dirty, key = fm._seed_lists(saved["colour"], seeds, len(ref))
     buf, sbuf, mask = np.empty((12, 12, 12)), np.zeros((12, 12, 12), bool), np.empty((12, 12), np.int64)
     c = 0 if counts[0] >= counts[1] else 1
     visits = 0
     while counts[0] + counts[1] > 0:
-        if counts[c] > 0:
-            work = fm._take_wave(lists, counts, on_list, c)
+        work = fm._take_wave(lists, counts, on_list, c, key, fm._window_end(lists, counts, key, fm.WINDOW))
+        if len(work):
             out = np.zeros((len(work), 3), np.int64)
             for t, b in enumerate(work):
                 out[t] = fm.relax_block(ref, saved["state"], saved["inside"], saved["nbr27"], b, saved["limit"], 1e-6,
                                        64, True, buf, sbuf, mask, np.inf, 63)
-            fm._finish_wave(work, out, saved["nbr27"], saved["colour"], lists, counts, on_list, dirty)
+            bmin = np.array([ref[b].min() for b in work])
+            fm._finish_wave(work, out, saved["nbr27"], saved["colour"], lists, counts, on_list, dirty, key, bmin)
             visits += len(work)
         c = 1 - c
     fm._fim_serial(got, saved["state"], saved["inside"], saved["nbr27"], saved["colour"], seeds, saved["limit"], 1e-6,
-                  64, True, 1 << 40, np.inf)
+                  64, True, 1 << 40, np.inf, fm.WINDOW)
     assert visits > 1.5 * len(ref)  # blocks are revisited
     assert np.array_equal(got, ref) and res.stats["converged"]
 

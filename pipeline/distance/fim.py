@@ -41,6 +41,11 @@ PARALLEL_BLOCKS = 4096  # blocks (2 M voxels) from which the FIM runs its waves 
 CHUNKS_PER_THREAD = 1  # one strided share of every wave per thread (measured best: 1, 2, 4, 8)
 QUADRIC_RESIDUAL = 0.02  # voxels: largest miss of the quadratic model at its stencil corners
 REL32 = 2.0**-22  # two float32 units relative: changes below them are rounding, not progress
+# a wave relaxes only the listed blocks whose key (a lower bound of the values that put them on
+# the list) is within WINDOW voxels of the smallest key (see fim). Measured on a sphere's interior
+# at 512^3 (FIM seconds / voxel updates per voxel): no window 4.4 s / 9.5, 32: 3.5 / 7.9,
+# 8: 2.4 / 4.9, 4: 2.2 / 4.4, 2: 2.0 / 4.2, 1: 2.3 / 4.2, 0.5: 2.6 / 4.1 (smaller waves)
+WINDOW = 2.0
 
 
 @njit(cache=True, inline="always")
@@ -249,16 +254,25 @@ def _start_mask(mask, dirty, depth):
             mask[2:10, 2:10] |= 1 << (9 - r)
 
 
-def fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, limit_in=np.inf):
+def fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, limit_in=np.inf,
+        window=WINDOW):
     """Block Fast Iterative Method (Jeong & Whitaker 2008, Alg. 1 with blocks as list items),
-    red-black over the block lattice.
+    red-black over the block lattice, the list taken in order of distance.
 
     ``colour``: parity of each block's lattice coordinates (0/1). The active list is kept per
     colour and processed in waves, one colour at a time: blocks of one colour are never face
     neighbours, so a wave relaxes its blocks in parallel without races - each writes only its
     own voxels and reads ghost layers of the other colour, which no one writes during the
     wave. The result does not depend on the number of threads. A relaxed block puts the face
-    neighbours whose ghost layers it changed on the list (of the other colour).
+    neighbours whose ghost layers it changed on the list (of the other colour), with a key:
+    the smallest value of the block that changed them. A wave takes only the blocks whose key
+    is within ``window`` voxels of the smallest key on the list, the others wait (the
+    bucketed order of the group marching method, Kim 2001, "An O(N) level set method for
+    eikonal equations"): a block's values then come from upwind blocks that have settled,
+    where taking the whole list relaxes blocks far ahead of the front again for every small
+    change behind it. A sphere's interior at 512^3: 9.5 -> 4.2 updates per voxel, 4.4 -> 2.0 s
+    (``window=inf`` is the plain FIM). The fixed point is the same; the second-order scheme is
+    not monotone, so the values it stops at differ within its tolerance.
     ``max_visits`` bounds the work of the (non-monotone) second-order pass. ``limit`` /
     ``limit_in``: largest value accepted outside / inside (voxels). Small problems
     run the serial kernel (a parallel launch costs more than they take). Returns (block
@@ -266,15 +280,16 @@ def fim(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, 
     """
     if len(d) < PARALLEL_BLOCKS:
         return _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits,
-                           float(limit_in))
+                           float(limit_in), float(window))
     chunks = CHUNKS_PER_THREAD * numba.get_num_threads()
     return _fim_parallel(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits,
-                         chunks, float(limit_in))
+                         chunks, float(limit_in), float(window))
 
 
 @njit(cache=True)
 def _seed_lists(colour, seeds, nb):
-    """(per-colour lists, their lengths, on-list flags, dirty faces per block: all at first)."""
+    """(per-colour lists, their lengths, on-list flags, dirty faces per block: all at first,
+    keys: 0 for the seeds, inf for the blocks not on a list)."""
     lists = np.empty((2, nb), dtype=np.int64)
     counts = np.zeros(2, dtype=np.int64)
     on_list = np.zeros(nb, dtype=np.bool_)
@@ -285,26 +300,52 @@ def _seed_lists(colour, seeds, nb):
             lists[c, counts[c]] = s
             counts[c] += 1
     dirty = np.full(nb, 63, dtype=np.int64)
-    return lists, counts, on_list, dirty
+    key = np.full(nb, np.inf)
+    for s in seeds:
+        key[s] = 0.0
+    return lists, counts, on_list, dirty, key
 
 
 @njit(cache=True)
-def _take_wave(lists, counts, on_list, c):
-    """The blocks of colour c on the list, removed from it."""
+def _window_end(lists, counts, key, window):
+    """The largest key a wave takes: the smallest key on either list plus ``window``."""
+    kmin = np.inf
+    for c in range(2):
+        for t in range(counts[c]):
+            kmin = min(kmin, key[lists[c, t]])
+    return kmin + window
+
+
+@njit(cache=True)
+def _take_wave(lists, counts, on_list, c, key, end):
+    """The blocks of colour c on the list with key <= ``end``, removed from it (the others stay
+    on it, in their order)."""
     m = counts[c]
-    work = lists[c, :m].copy()
-    counts[c] = 0
+    work = np.empty(m, np.int64)
+    nw = 0
+    keep = 0
     for t in range(m):
-        on_list[work[t]] = False
-    return work
+        b = lists[c, t]
+        if key[b] <= end:
+            work[nw] = b
+            nw += 1
+            on_list[b] = False
+            key[b] = np.inf
+        else:
+            lists[c, keep] = b
+            keep += 1
+    counts[c] = keep
+    return work[:nw]
 
 
 @njit(cache=True)
-def _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty):
+def _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty, key, bmin):
     """After a wave (``out`` rows: faces, updates, sweeps per block): the face neighbours whose
     ghost layers changed go on their colour's list and have that face marked dirty (serial, in
-    list order: the result is deterministic); the wave's blocks are clean again unless they
-    stopped at max_sweeps. Returns (visits, updates, sweeps) of the wave."""
+    list order: the result is deterministic), their key lowered to the smallest value of the
+    block that changed them (``bmin``: every value it passed on is at least that); the wave's
+    blocks are clean again unless they stopped at max_sweeps. Returns (visits, updates, sweeps)
+    of the wave."""
     for t in range(len(work)):
         dirty[work[t]] = 63 if out[t, 0] & 64 else 0
     for t in range(len(work)):
@@ -314,6 +355,7 @@ def _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty):
                 n = nbr27[b, FACE_ROWS27[f]]
                 if n >= 0:
                     dirty[n] |= 1 << (f ^ 1)  # n's ghost layer on the face it shares with b
+                    key[n] = min(key[n], bmin[t])
                 if n >= 0 and not on_list[n]:
                     on_list[n] = True
                     cn = colour[n]
@@ -324,17 +366,18 @@ def _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty):
 
 @njit(cache=True)
 def _relax_range(d, state, inside, nbr27, work, lo, hi, limit, tol, max_sweeps, order2, buf, sbuf, out, limit_in,
-                 dirty, stride=1):
+                 dirty, bmin, stride=1):
     mask = np.empty((12, 12), dtype=np.int64)
     for t in range(lo, hi, stride):
         out[t, 0], out[t, 1], out[t, 2] = relax_block(d, state, inside, nbr27, work[t], limit, tol, max_sweeps,
                                                       order2, buf, sbuf, mask, limit_in, dirty[work[t]])
+        bmin[t] = d[work[t]].min()
 
 
 @njit(cache=True)
-def _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, limit_in):
+def _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, limit_in, window):
     """:func:`fim` on one thread (the same waves, so the same result)."""
-    lists, counts, on_list, dirty = _seed_lists(colour, seeds, d.shape[0])
+    lists, counts, on_list, dirty, key = _seed_lists(colour, seeds, d.shape[0])
     buf = np.empty((12, 12, 12))
     sbuf = np.zeros((12, 12, 12), dtype=np.bool_)
     visits, updates, sweeps = 0, 0, 0
@@ -342,12 +385,13 @@ def _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, 
     while counts[0] + counts[1] > 0:
         if visits >= max_visits:
             return visits, updates, sweeps, False
-        if counts[c] > 0:
-            work = _take_wave(lists, counts, on_list, c)
+        work = _take_wave(lists, counts, on_list, c, key, _window_end(lists, counts, key, window))
+        if len(work) > 0:
             out = np.zeros((len(work), 3), dtype=np.int64)
+            bmin = np.empty(len(work))
             _relax_range(d, state, inside, nbr27, work, 0, len(work), limit, tol, max_sweeps, order2, buf, sbuf, out,
-                         limit_in, dirty)
-            v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty)
+                         limit_in, dirty, bmin)
+            v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty, key, bmin)
             visits, updates, sweeps = visits + v, updates + u, sweeps + w
         c = 1 - c
     return visits, updates, sweeps, True
@@ -355,13 +399,13 @@ def _fim_serial(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, 
 
 @njit(cache=True, parallel=True)
 def _fim_parallel(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps, order2, max_visits, chunks,
-                  limit_in):
+                  limit_in, window):
     """:func:`fim` with each wave split into ``chunks`` strided shares relaxed in parallel (one
     buffer per share): share c takes the wave's blocks c, c + chunks, ... The list is in
     spatial order and the work of a block varies a lot along it (the front), so contiguous
     ranges left one thread idle at the end of a wave (FIM at 512^3: 2.49 s with two ranges per
     thread, 2.26 s strided)."""
-    lists, counts, on_list, dirty = _seed_lists(colour, seeds, d.shape[0])
+    lists, counts, on_list, dirty, key = _seed_lists(colour, seeds, d.shape[0])
     bufs = np.empty((chunks, 12, 12, 12))
     sbufs = np.zeros((chunks, 12, 12, 12), dtype=np.bool_)
     visits, updates, sweeps = 0, 0, 0
@@ -369,15 +413,16 @@ def _fim_parallel(d, state, inside, nbr27, colour, seeds, limit, tol, max_sweeps
     while counts[0] + counts[1] > 0:
         if visits >= max_visits:
             return visits, updates, sweeps, False
-        if counts[c] > 0:
-            work = _take_wave(lists, counts, on_list, c)
-            m = len(work)
+        work = _take_wave(lists, counts, on_list, c, key, _window_end(lists, counts, key, window))
+        m = len(work)
+        if m > 0:
             out = np.zeros((m, 3), dtype=np.int64)
+            bmin = np.empty(m)
             k = min(chunks, m)
             for ch in numba.prange(k):
                 _relax_range(d, state, inside, nbr27, work, ch, m, limit, tol, max_sweeps,
-                             order2, bufs[ch], sbufs[ch], out, limit_in, dirty, k)
-            v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty)
+                             order2, bufs[ch], sbufs[ch], out, limit_in, dirty, bmin, k)
+            v, u, w = _finish_wave(work, out, nbr27, colour, lists, counts, on_list, dirty, key, bmin)
             visits, updates, sweeps = visits + v, updates + u, sweeps + w
         c = 1 - c
     return visits, updates, sweeps, True

@@ -111,3 +111,24 @@ def test_the_first_voxel_not_finite_is_reported_as_by_numpy(src, monkeypatch):
         numpy_values(["d", src], vox, 0.0, monkeypatch)
     assert got.value.component == want.value.component == 1
     assert str(got.value) == str(want.value)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 6), st.booleans(), st.floats(0.0, 1.0), st.floats(1e-3, 1e6), st.integers(0, 2**31))
+def test_attribute_grid_sentinel_exceeds_every_active_value(blocks, vector, share, scale, seed) -> None:
+    """attribute_grid writes under a sentinel background that no active value takes: the
+    compiled max over the active voxels gives the definition's even integer above them all
+    (scalar and Vec3S blocks, any share of active voxels, none at all)."""
+    import math
+
+    from pipeline.io.vdbgrids import _sentinel
+
+    rng = np.random.default_rng(seed)
+    shape = (blocks, 8, 8, 8, 3) if vector else (blocks, 8, 8, 8)
+    values = (rng.standard_normal(shape) * scale).astype(np.float32)
+    active = rng.random(shape[:4]) < share
+    flags = active[..., None] if vector else active
+    want = float(np.float32(2.0 * math.floor(np.abs(values[np.broadcast_to(flags, shape)]).max(initial=0.0)) + 2.0))
+    got = _sentinel(values, active)
+    assert got == want
+    assert not np.any(np.where(np.broadcast_to(flags, shape), values, 0.0) == got)

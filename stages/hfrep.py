@@ -192,10 +192,12 @@ def _interior(res, dom, order: int, stats: dict):
 def _attributes(ctx, p: Params, res, hf, band: float, meta: dict) -> dict:
     """Evaluate and store every attribute grid; a formula that is not finite is a config error."""
 
-    out = {}
+    out, covered = {}, {}
     for a_index, a in enumerate(p.attributes):
         srcs = [a.formula] if a.formula is not None else list(a.rgb)
-        vox = attr.attribute_voxels(res, hf, a.outside, band)
+        if a.outside not in covered:  # the same voxels for every attribute of one ``outside``
+            covered[a.outside] = attr.attribute_voxels(res, hf, a.outside, band)
+        vox = covered[a.outside]
         try:
             values = attr.evaluate_attribute([attr.AttributeFormula(s) for s in srcs], vox, ctx.job.t)
         except attr.NonFiniteAttribute as e:

@@ -137,16 +137,33 @@ def attribute_voxels(result, hfrep: BlockGrid, outside: str = "inactive", band: 
     ``hfrep``: the stage's hfrep blocks (same origins as ``result.distance``); ``band``: for
     ``outside: surface``, how far outside (voxels) the surface value is continued.
     """
-    dist = result.distance
-    inside = result.inside & dist.active
-    active = inside.copy()
-    d = np.where(inside, dist.values, np.float32(0.0))  # float32 as solved: exact in a formula's float64
-    if outside == "surface":
-        near = (~result.inside) & dist.active & (dist.values <= band * dist.voxel_size) & hfrep.active
-        active |= near
-    elif outside != "inactive":
+    if outside not in ("inactive", "surface"):
         raise ValueError(f"outside must be 'inactive' or 'surface', not {outside!r}")
+    dist = result.distance
+    active = np.empty(dist.active.shape, np.bool_)
+    d = np.empty(dist.values.shape, np.float32)
+    _covered(result.inside, dist.active, dist.values, hfrep.active, outside == "surface",
+             np.float32(band * dist.voxel_size), active, d)
     return AttributeVoxels(dist.origins, active, d, float(dist.voxel_size))
+
+
+@njit(cache=True, parallel=True)
+def _covered(inside, solved, dist, hf_active, surface, reach, active, d):
+    """active = solved inside voxels, and with ``surface`` the solved outside voxels within
+    ``reach`` (world units) that hfrep keeps; d = the distance inside (float32 as solved: exact
+    in a formula's float64), 0 elsewhere. One pass over the blocks: the NumPy masks and
+    ``where`` made five full-size temporaries (3.5 s per attribute at 1024^3)."""
+    for b in prange(dist.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    s = solved[b, i, j, k]
+                    if inside[b, i, j, k]:
+                        active[b, i, j, k] = s
+                        d[b, i, j, k] = dist[b, i, j, k] if s else np.float32(0.0)
+                    else:
+                        active[b, i, j, k] = surface and s and dist[b, i, j, k] <= reach and hf_active[b, i, j, k]
+                        d[b, i, j, k] = np.float32(0.0)
 
 
 def evaluate_attribute(formulas: list[AttributeFormula], vox: AttributeVoxels, t: float = 0.0) -> np.ndarray:

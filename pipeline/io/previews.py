@@ -216,7 +216,8 @@ class SliceSheet:
         drawn, image = [], None
         for n, (ax, sl) in enumerate(zip(self.axes, slices, strict=True)):
             image = _draw_slice(ax, sl, kind, cmap, norm)
-            mine = [image, *_draw_contours(ax, sl, kind, norm, ref[n] if ref else None, ref_iso)]
+            contours = _draw_contours(ax, sl, kind, norm, ref[n] if ref else None, ref_iso)
+            mine = [image, *(a for cs in contours for a in _contour_artists(cs))]
             for artist in (*mine, *ax.spines.values()):
                 ax.draw_artist(artist)
             drawn += mine
@@ -252,6 +253,12 @@ class SliceSheet:
         with atomic_path(path) as tmp:
             PILImage.fromarray(self.rgb()).save(tmp, format="png", compress_level=PNG_LEVEL)
         self.clear()
+
+
+def _contour_artists(cs: Any) -> list[Any]:
+    """The artists of a contour set: the set itself (matplotlib >= 3.8, an Artist), or its line
+    collections (3.6 and 3.7, Debian's python3-matplotlib)."""
+    return [cs] if hasattr(cs, "draw") else list(cs.collections)
 
 
 def _bar_label(name: str, kind: str) -> str:

@@ -50,8 +50,11 @@ def check_frep_everywhere(tmp: Path, text: str) -> dict:
     g = vdb.read(str(folder / f"{job.name}.vdb"), "frep")
     assert math.isfinite(g.background) and g.background < 0
     unclosed = unclosed_pairs(vals, active)
-    # the stored sign is the model's (float32 rounding can only turn |f| < 1e-38 into 0)
-    wrong = np.count_nonzero((vals > 0) != (truth > 0) & (np.abs(truth) > 1e-30))
+    # the stored sign is the model's. A voxel centre on the zero set itself has no sign to
+    # compare: the reference (NumPy) and the compiled tape round sin/cos differently in the
+    # last bits (NumPy 1.24, Debian's, gave 1.7e-16 where the tape gave 0 on a twisted sphere
+    # through voxel centres), so values within 1e-12 voxel of zero count as on the surface
+    wrong = np.count_nonzero(((vals > 0) != (truth > 0)) & (np.abs(truth) > 1e-12 * job.domain.voxel_size))
     return {"unclosed": unclosed, "wrong": int(wrong), "active": int(active.sum()), "manifest": manifest,
             "voxels": int(vals.size)}
 
@@ -156,6 +159,10 @@ def tree(draw, depth: int = 0) -> str:
 @example(model='{translate: {by: [0.1, -0.05, 0.02], of: {union: {of: [{sphere: {center: [0.0, 0.0, 0.0], '
                'radius: 0.5}}, {expr: "40 * (0.375^2 - (x - 0.25)^2 - (y - 0.0)^2 - (z - 0.0)^2)"}], '
                'rfunc: min_max}}}}', band=1, res=24)
+# a twisted sphere through voxel centres (found by CI with NumPy 1.24): its values there are 0
+# to the last bit, and the two evaluators round them to +-1e-16 or 0
+@example(model='{twist: {rate: 30, of: {twist: {rate: 30, of: {sphere: {center: [0.0, 0.0, 0.5], radius: 0.5}}}}}}',
+         band=1, res=24)
 def test_random_trees_written_band_closed_and_signed(tmp_path_factory, model, band, res) -> None:
     tmp = tmp_path_factory.mktemp("tree")
     r = check_frep_everywhere(tmp, frep_config(model, res=res, band=band))

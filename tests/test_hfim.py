@@ -349,3 +349,41 @@ def test_leaf_nodes_are_numpys_mean_of_the_centre_voxels(seed: int, centre: bool
     want_i[tuple(p[ok].T)] = inside[:, 3:5, 3:5, 3:5][ok].reshape(int(ok.sum()), -1).mean(axis=1) > 0.5
     assert full.any() and (~ok).any()
     assert np.array_equal(vals, want_v) and np.array_equal(frozen, want_f) and np.array_equal(ins, want_i)
+
+
+def _blocks_by_numpy(res, signed: bool):
+    """hierarchical_blocks as NumPy array expressions (its definition before it was compiled)."""
+    from pipeline.distance.hfim import sample_distance
+
+    dist = res.fine.distance
+    h = res.voxel_size
+    values = dist.values.astype(np.float64) / h
+    todo = ~dist.active
+    if todo.any():
+        b, i, j, k = np.nonzero(todo)
+        values[b, i, j, k] = sample_distance(res, dist.origins[b] + np.stack([i, j, k], 1))
+    lo, hi = res.domain
+    ijk = dist.origins[:, :, None] + np.arange(LEAF)[None, None, :]
+    inb = (ijk >= lo[None, :, None]) & (ijk <= hi[None, :, None])
+    active = inb[:, 0, :, None, None] & inb[:, 1, None, :, None] & inb[:, 2, None, None, :] & np.isfinite(values)
+    values = values * h
+    if signed:
+        values = np.where(res.fine.inside, -values, values)
+    bg = float(np.nanmax(np.where(active, np.abs(values), 0.0), initial=0.0))
+    return np.where(active, values, bg).astype(np.float32), active, bg
+
+
+@pytest.mark.parametrize(("name", "n", "kw"), [("sphere", 48, {}), ("box", 64, {"fine_distance_vox": 4.0}),
+                                               ("sphere", 40, {"fine_distance_vox": 2.0})])
+@pytest.mark.parametrize("signed", [True, False])
+def test_hierarchical_blocks_compiled_is_the_numpy_definition(name: str, n: int, kw: dict, signed: bool) -> None:
+    """The written fine leaves (one compiled pass) are the NumPy expressions' to the bit: values,
+    active voxels (in the domain box, finite), background; with voxels left to the coarse levels."""
+    from pipeline.distance.hfim import hierarchical_blocks
+
+    _, _, res = hfim(name, n, **kw)
+    assert (~res.fine.distance.active).any()  # some voxels take the coarse levels' samples
+    got = hierarchical_blocks(res, signed)
+    values, active, bg = _blocks_by_numpy(res, signed)
+    assert got.background == bg and np.array_equal(got.active, active)
+    assert np.array_equal(got.values.view(np.uint32), values.view(np.uint32))

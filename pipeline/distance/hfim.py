@@ -629,26 +629,63 @@ def hierarchical_blocks(res: HierarchicalResult, signed: bool = True):
     """Fine leaves of the written grid (world units, negative inside when ``signed``): every
     voxel of a fine leaf is active; voxels the fine front did not reach get the trilinear
     value of the coarse levels."""
-
     dist = res.fine.distance
     h = res.voxel_size
-    values = dist.values.astype(np.float64) / h
     todo = ~dist.active
+    sampled = np.zeros(0)
     if todo.any():
         b, i, j, k = np.nonzero(todo)
-        ijk = dist.origins[b] + np.stack([i, j, k], 1)
-        values[b, i, j, k] = sample_distance(res, ijk)
-    lo, hi = res.domain
-    r = np.arange(LEAF)
-    ijk = dist.origins[:, :, None] + r[None, None, :]
-    inb = (ijk >= lo[None, :, None]) & (ijk <= hi[None, :, None])
-    active = inb[:, 0, :, None, None] & inb[:, 1, None, :, None] & inb[:, 2, None, None, :] & np.isfinite(values)
-    values = values * h
-    if signed:
-        values = np.where(res.fine.inside, -values, values)
-    bg = float(np.nanmax(np.where(active, np.abs(values), 0.0), initial=0.0))
-    values = np.where(active, values, bg).astype(np.float32)
+        sampled = sample_distance(res, dist.origins[b] + np.stack([i, j, k], 1))
+    first = np.concatenate([[0], np.cumsum(todo.reshape(len(todo), -1).sum(axis=1))]).astype(np.int64)
+    lo, hi = (np.asarray(a, np.int64) for a in res.domain)
+    values = np.empty(dist.values.shape, np.float32)
+    active = np.empty(dist.active.shape, np.bool_)
+    top = _leaf_values(dist.values, dist.active, res.fine.inside, dist.origins, sampled, first, lo, hi, float(h),
+                       bool(signed), values, active)
+    bg = float(top.max(initial=0.0))
+    _fill_inactive(values, active, np.float32(bg))
     return BlockGrid(h, bg, dist.origins, values, active)
+
+
+@njit(cache=True, parallel=True)
+def _leaf_values(dist, solved, inside, origins, sampled, first, lo, hi, h, signed, values, active):
+    """:func:`hierarchical_blocks` in one pass: the fine value (d / h * h, as the NumPy form
+    computed it) or the coarse sample (``sampled``: the unsolved voxels in C order, block b's
+    from ``first[b]``), negated inside when ``signed``; active where in the domain box and
+    finite. Returns each block's largest |value| over its active voxels (the background)."""
+    top = np.zeros(dist.shape[0])
+    for b in prange(dist.shape[0]):
+        n = first[b]
+        m = 0.0
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if solved[b, i, j, k]:
+                        v = np.float64(dist[b, i, j, k]) / h
+                    else:
+                        v = sampled[n]
+                        n += 1
+                    ok = math.isfinite(v) and lo[0] <= origins[b, 0] + i <= hi[0] \
+                        and lo[1] <= origins[b, 1] + j <= hi[1] and lo[2] <= origins[b, 2] + k <= hi[2]
+                    active[b, i, j, k] = ok
+                    if ok:
+                        v = v * h
+                        if signed and inside[b, i, j, k]:
+                            v = -v
+                        values[b, i, j, k] = np.float32(v)
+                        m = max(m, abs(v))
+        top[b] = m
+    return top
+
+
+@njit(cache=True, parallel=True)
+def _fill_inactive(values, active, bg):
+    for b in prange(values.shape[0]):
+        for i in range(8):
+            for j in range(8):
+                for k in range(8):
+                    if not active[b, i, j, k]:
+                        values[b, i, j, k] = bg
 
 
 def hierarchical_tiles(res: HierarchicalResult, signed: bool = True, background: float | None = None,

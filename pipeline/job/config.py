@@ -12,6 +12,7 @@ import functools
 import hashlib
 import json
 import math
+import textwrap
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -423,19 +424,25 @@ class _Ctx:
         return ConfigError.one(self.file, line_of(self.root, path), path, message)
 
 
+def _listing(names: list[str]) -> str:
+    """Names for a message, on indented lines of their own below the problem's line: an error
+    line stays short (file, line, YAML path and the problem) however many node types there are."""
+    return "\n" + textwrap.fill(", ".join(names), 96, initial_indent="  ", subsequent_indent="  ")
+
+
 def build_node(raw: Any, path: tuple, ctx: _Ctx) -> Node:
     """Build a node from ``{type: params}`` (plus optional ``rfunc``) at YAML ``path``."""
     kinds = sorted(REGISTRY)
     if not isinstance(raw, dict) or not raw:
-        raise ctx.fail(path, f"a node is a mapping with one key, its type (one of: {', '.join(kinds)})")
+        raise ctx.fail(path, f"a node is a mapping with one key, its type, one of:{_listing(kinds)}")
     type_keys = [k for k in raw if k not in NODE_SIBLINGS]
     if len(type_keys) != 1:
         raise ctx.fail(path, f"a node has exactly one type key, found {len(type_keys)}: {type_keys}")
     kind = type_keys[0]
     if kind not in REGISTRY:
         hint = difflib.get_close_matches(str(kind), kinds, n=1)
-        alts = f"did you mean {hint[0]!r}?" if hint else f"known: {', '.join(kinds)}"
-        raise ctx.fail(path + (kind,), f"unknown node type {kind!r} ({alts})")
+        alts = f" (did you mean {hint[0]!r}?)" if hint else f"; the node types are:{_listing(kinds)}"
+        raise ctx.fail(path + (kind,), f"unknown node type {kind!r}{alts}")
     cls = REGISTRY[kind]
     body, strip = _normalise_body(cls, raw[kind], path + (kind,), ctx)
     for sib in NODE_SIBLINGS:

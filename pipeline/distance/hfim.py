@@ -680,6 +680,8 @@ def _leaf_values(dist, solved, inside, origins, sampled, first, lo, hi, h, signe
 
 @njit(cache=True, parallel=True)
 def _fill_inactive(values, active, bg):
+    """values = bg at the inactive voxels (the background is known only after every block's
+    largest active value: :func:`_leaf_values`)."""
     for b in prange(values.shape[0]):
         for i in range(8):
             for j in range(8):

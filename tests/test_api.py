@@ -35,7 +35,14 @@ def yaml_job(tmp_path, model_yaml: str, res: int = 24):
 
 
 def assert_same_model(shape: fv.Shape, job, seed: int = 0) -> None:
-    """Same tape arrays (bit for bit) and the same values at random points."""
+    """Same tape arrays (bit for bit), the same compiled values (bit for bit) and the same NumPy
+    reference values at random points.
+
+    The NumPy reference (``Node.evaluate``) is compared to 4 ulp of the value's scale, not to the
+    bit: NumPy's SIMD transcendental ufuncs on strided column views are not bit-reproducible from
+    call to call (a full ``make test`` run once gave 1.1e-16 on 8 of 2000 points of
+    ``sin(9 * x)`` for two identical models). The compiled tape is what the grids are written
+    from, and it is deterministic, so it is held to the bit."""
     node = shape.node(job.domain, job.t)
     a, b = pt.compile_model(node, job.t), pt.compile_model(job.model, job.t)
     assert a is not None and b is not None
@@ -43,7 +50,12 @@ def assert_same_model(shape: fv.Shape, job, seed: int = 0) -> None:
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
     assert a.res == b.res
     p = np.random.default_rng(seed).uniform(-1.3, 1.3, (2000, 3))
-    np.testing.assert_array_equal(node.evaluate(p), job.model.evaluate(p))
+    np.testing.assert_array_equal(pt.evaluate_with(a, p), pt.evaluate_with(b, p))
+    va, vb = node.evaluate(p), job.model.evaluate(p)
+    np.testing.assert_array_equal(np.isfinite(va), np.isfinite(vb))
+    fin = np.isfinite(va)
+    tol = 4 * np.finfo(np.float64).eps * np.maximum(1.0, np.abs(va[fin]))
+    assert np.all(np.abs(va[fin] - vb[fin]) <= tol), np.abs(va[fin] - vb[fin]).max()
 
 
 # --- random small trees, written twice: once with the API, once by hand in YAML ---------------

@@ -20,7 +20,15 @@ import numpy as np
 from numba import prange
 
 from pipeline.sparse.blockwrite import LeafSource
-from pipeline.sparse.grid import LEAF, LEAF_LOG2, BlockGrid, coalesce_boxes, leaf_has_active, pack_keys
+from pipeline.sparse.grid import (
+    LEAF,
+    LEAF_LOG2,
+    BlockGrid,
+    coalesce_boxes,
+    leaf_has_active,
+    max_abs_active,
+    pack_keys,
+)
 from pipeline.util.jit import njit
 
 try:  # the compiled leaf builder, built by the package's build where OpenVDB's headers are (setup.py)
@@ -348,29 +356,8 @@ def attribute_grid(name: str, values: np.ndarray, origins: np.ndarray, active: n
 
 def _sentinel(values: np.ndarray, active: np.ndarray) -> float:
     """A float32 background that no active value takes (an even integer above them all)."""
-    if not len(active):
-        return 2.0
-    flags = np.ascontiguousarray(active).reshape(len(active), -1)
-    top = _abs_max_active(np.ascontiguousarray(values).reshape(len(active), -1), flags)
+    top = max(max_abs_active(np.ascontiguousarray(values), np.ascontiguousarray(active)), 0.0)
     return float(np.float32(2.0 * math.floor(top) + 2.0))
-
-
-@njit(cache=True, parallel=True)
-def _abs_max_active(values, active):
-    """max |value| over the active voxels (0 if none) of (L, n) blocks with (L, v) flags (a
-    Vec3S block: n = 3 v, a voxel's three components together). ``np.abs(values[active])``
-    copied the active values twice: 10 s for the microstructure's two grids at 1024^3."""
-    nb, nv = active.shape
-    per = values.shape[1] // max(nv, 1)
-    top = np.zeros(nb)
-    for b in prange(nb):
-        m = 0.0
-        for v in range(nv):
-            if active[b, v]:
-                for c in range(per):
-                    m = max(m, abs(values[b, v * per + c]))
-        top[b] = m
-    return top.max() if nb else 0.0
 
 
 # --- tiles ----------------------------------------------------------------------------------

@@ -152,6 +152,24 @@ def coalesce_boxes(boxes: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, parallel=True)
+def max_abs_active(values: np.ndarray, active: np.ndarray) -> float:
+    """max |v| over the active voxels of the blocks (values (L,8,8,8), or (L,8,8,8,3) for Vec3S
+    blocks: a voxel's components together), -1 when none is active. One parallel pass without
+    copies (``np.abs(values[active])`` copied every active value twice)."""
+    top = np.full(values.shape[0], -1.0)
+    for r in prange(values.shape[0]):
+        fv, fa = values[r].reshape(-1), active[r].reshape(-1)
+        per = fv.size // max(fa.size, 1)
+        t = -1.0
+        for n in range(fa.size):
+            if fa[n]:
+                for c in range(per):
+                    t = max(t, abs(np.float64(fv[n * per + c])))
+        top[r] = t
+    return top.max() if values.shape[0] else -1.0
+
+
+@njit(cache=True, parallel=True)
 def leaf_has_active(active: np.ndarray) -> np.ndarray:
     """Whether each (8, 8, 8) block has an active voxel (one parallel pass)."""
     out = np.zeros(active.shape[0], np.bool_)

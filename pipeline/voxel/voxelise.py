@@ -49,7 +49,7 @@ from pipeline.model.tape import (
     specialise,
 )
 from pipeline.sparse.blockwrite import mapped_empty
-from pipeline.sparse.grid import LEAF, LEAF_LOG2, BlockGrid, pack_keys
+from pipeline.sparse.grid import LEAF, LEAF_LOG2, BlockGrid, max_abs_active, pack_keys
 from pipeline.util.jit import njit
 from pipeline.voxel.band import cull_pad_voxels, mark_band, reach_bits
 
@@ -578,24 +578,10 @@ def _in_domain(blocks: np.ndarray, b: int, imin: np.ndarray, imax: np.ndarray) -
 
 def _background(values: np.ndarray, active: np.ndarray, band: float, h: float) -> float:
     """|background|: above every active value, so inactive +-bg never collide with band values."""
-    top = _max_abs_active(values, active) if len(values) else -1.0
+    top = max_abs_active(values, active)
     if top < 0:
         return float(band * h)
     return float(max(top * 1.01, 1e-6))
-
-
-@njit(cache=True, parallel=True)
-def _max_abs_active(values, active) -> float:
-    """max |v| over the active voxels of the leaves, -1 when none is active."""
-    top = np.full(values.shape[0], -1.0)
-    for r in prange(values.shape[0]):
-        fv, fa = values[r].reshape(-1), active[r].reshape(-1)
-        t = -1.0
-        for n in range(fv.size):
-            if fa[n]:
-                t = max(t, abs(np.float64(fv[n])))
-        top[r] = t
-    return top.max()
 
 
 def _assemble_leaves(blocks, b, vals, valid, inside_levels, h, bg) -> tuple[BlockGrid, np.ndarray]:

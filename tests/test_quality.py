@@ -61,3 +61,33 @@ def test_extra_zero_crossings_are_counted_exactly() -> None:
     assert extra > 50
     assert (out["extra_zero_crossings"], out["edges_compared"]) == (extra, edges)
     assert extra_zero_crossings(ref, ref)["extra_zero_crossings"] == 0
+
+
+def test_histogram_counts_every_voxel_in_its_bin_whatever_inactive_voxels_hold() -> None:
+    """The compiled histogram (its gradients computed for every voxel of a row before the
+    activity test) equals NumPy's histogram of the per-voxel gradients, bin for bin; inactive
+    voxels holding inf, nan or huge values change nothing; the inside negation too."""
+    from pipeline.distance.quality import _NO_SIGN, HIST_BINS, HIST_MAX, _chunks, _gradient_hist
+    from pipeline.sparse.access import block_neighbours
+
+    frep, _ = band_grid(torus, 48)
+    grid = _holes(frep, 3)
+    nbr = block_neighbours(grid)
+    _, g = central_gradient(grid)
+    mag = np.linalg.norm(g, axis=1)
+    want = np.bincount(np.minimum((mag * (HIST_BINS / HIST_MAX)).astype(np.int64), HIST_BINS - 1),
+                       minlength=HIST_BINS)
+    junk = grid.values.copy()
+    rng = np.random.default_rng(7)
+    junk[~grid.active] = rng.choice([np.inf, -np.inf, np.nan, 3e38], size=int((~grid.active).sum()))
+    for values in (grid.values, junk):
+        hist = np.zeros(HIST_BINS, np.int64)
+        n, total = _gradient_hist(values, grid.active, nbr, float(grid.voxel_size), hist, _chunks(len(values)),
+                                  _NO_SIGN)
+        assert n == len(mag) > 1000 and np.array_equal(hist, want)
+        assert abs(total - mag.sum()) < 1e-9 * n
+    # |grad| of -f inside equals |grad f| wherever the stencil does not cross the inside's border
+    inside = np.ones(grid.values.shape, bool)
+    hist = np.zeros(HIST_BINS, np.int64)
+    n, _ = _gradient_hist(grid.values, grid.active, nbr, float(grid.voxel_size), hist, _chunks(len(junk)), inside)
+    assert n == len(mag) and np.array_equal(hist, want)

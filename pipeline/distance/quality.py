@@ -92,6 +92,9 @@ def _gradient_hist(vals, act, nbr, h, hist, chunks, inside):
         buf = np.zeros((10, 10, 10))
         abuf = np.zeros((10, 10, 10), dtype=np.bool_)
         ibuf = np.zeros((10, 10, 10), dtype=np.bool_)
+        row = np.empty(8)  # |grad| of one row of voxels, and whether each has its 6 neighbours
+        good = np.empty(8, np.bool_)
+        counts = hists[c]
         n = 0
         total = 0.0
         for b in range(c * nblk // chunks, (c + 1) * nblk // chunks):
@@ -100,14 +103,22 @@ def _gradient_hist(vals, act, nbr, h, hist, chunks, inside):
                 _negate_inside(inside, nbr, b, buf, ibuf)
             for i in range(1, 9):
                 for j in range(1, 9):
+                    # a row's gradients without branches first (the loop vectorises), the
+                    # histogram after: 0.43-0.50 -> 0.22-0.37 s for 42M voxels, the same counts
+                    # and sum (the central difference's 0.5 moved out of the square root is exact)
                     for k in range(1, 9):
-                        dx, dy, dz, good = central_gradient_at(buf, abuf, i, j, k)
-                        if not good:
-                            continue
-                        g = math.sqrt(dx * dx + dy * dy + dz * dz) * inv
-                        hists[c, min(int(g * scale), nb - 1)] += 1
-                        n += 1
-                        total += g
+                        dx = buf[i + 1, j, k] - buf[i - 1, j, k]
+                        dy = buf[i, j + 1, k] - buf[i, j - 1, k]
+                        dz = buf[i, j, k + 1] - buf[i, j, k - 1]
+                        row[k - 1] = 0.5 * math.sqrt(dx * dx + dy * dy + dz * dz) * inv
+                        good[k - 1] = (abuf[i, j, k] & abuf[i - 1, j, k] & abuf[i + 1, j, k] & abuf[i, j - 1, k]
+                                       & abuf[i, j + 1, k] & abuf[i, j, k - 1] & abuf[i, j, k + 1])
+                    for k in range(8):
+                        if good[k]:
+                            g = row[k]
+                            counts[min(int(g * scale), nb - 1)] += 1
+                            n += 1
+                            total += g
         ns[c] = n
         totals[c] = total
     for c in range(chunks):

@@ -179,47 +179,65 @@ def _dilate_axis(bits, nbr, axis, step):
 
 
 @njit(cache=True, inline="always")
-def _at(values, reach, nbr, r, i, j, k):
-    """(value, in the reach) of voxel (i, j, k) of leaf r, one step at most beyond its faces."""
-    q = r
-    for axis in range(3):
-        c = i if axis == 0 else (j if axis == 1 else k)
-        if c < 0 or c >= LEAF:
-            q = nbr[q, 2 * axis + (1 if c >= LEAF else 0)]
-            if q < 0:
-                return 0.0, False
-    ii, jj, kk = i & (LEAF - 1), j & (LEAF - 1), k & (LEAF - 1)
-    return np.float64(values[q, ii, jj, kk]), (reach[q, ii, jj] >> kk) & 1 == 1
+def _load_reach(values, reach, nbr, r, buf, ok):
+    """Leaf r's values and reach flags with the face layer of each of its six neighbours into
+    (10, 10, 10) buffers (local index + 1); edges, corners and absent leaves read as out of the
+    reach. The stencil then reads buffers instead of finding the leaf of every neighbour."""
+    ok[:] = False
+    for i in range(LEAF):
+        for j in range(LEAF):
+            rb = reach[r, i, j]
+            for k in range(LEAF):
+                buf[i + 1, j + 1, k + 1] = values[r, i, j, k]
+                ok[i + 1, j + 1, k + 1] = (rb >> k) & 1 == 1
+    for f in range(6):
+        q = nbr[r, f]
+        if q < 0:
+            continue
+        axis, up = f // 2, f % 2 == 1
+        src = 0 if up else LEAF - 1  # the neighbour's layer that touches leaf r
+        dst = LEAF + 1 if up else 0
+        for a in range(LEAF):
+            for b in range(LEAF):
+                if axis == 0:
+                    buf[dst, a + 1, b + 1] = values[q, src, a, b]
+                    ok[dst, a + 1, b + 1] = (reach[q, src, a] >> b) & 1 == 1
+                elif axis == 1:
+                    buf[a + 1, dst, b + 1] = values[q, a, src, b]
+                    ok[a + 1, dst, b + 1] = (reach[q, a, src] >> b) & 1 == 1
+                else:
+                    buf[a + 1, b + 1, dst] = values[q, a, b, src]
+                    ok[a + 1, b + 1, dst] = (reach[q, a, b] >> src) & 1 == 1
 
 
 @njit(cache=True, parallel=True)
 def _band_test(values, reach, sign, nbr, band, active) -> int:
     """active = S, or in the reach and |f| <= band * |grad f|; returns how many S voxels the
-    distance test alone leaves out."""
+    distance test alone leaves out. Each leaf is read once into buffers with its face layers
+    (:func:`_load_reach`): 31 -> 20 ms per call on the sphere at 512^3, the demo's 116 -> 59 ms,
+    the same bits (checked on 21 models and sizes, band 2.5 and 3, a mesh among them)."""
     n = values.shape[0]
     by_sign = np.zeros(n, np.int64)
     b2 = band * band
     for r in prange(n):
-        row = nbr[r, 0] * 0 + r  # int64, as the neighbour rows (a prange index may be unsigned)
+        buf = np.empty((LEAF + 2, LEAF + 2, LEAF + 2))
+        ok = np.empty((LEAF + 2, LEAF + 2, LEAF + 2), np.bool_)
+        _load_reach(values, reach, nbr, r, buf, ok)
         m = 0
-        for i in range(LEAF):
-            for j in range(LEAF):
-                rb, sb = reach[r, i, j], sign[r, i, j]
-                for k in range(LEAF):
-                    if not (rb >> k) & 1:
-                        active[r, i, j, k] = False
+        for i in range(1, LEAF + 1):
+            for j in range(1, LEAF + 1):
+                sb = sign[r, i - 1, j - 1]
+                for k in range(1, LEAF + 1):
+                    if not ok[i, j, k]:
+                        active[r, i - 1, j - 1, k - 1] = False
                         continue
-                    f = np.float64(values[r, i, j, k])
-                    g2 = 0.0
-                    for axis in range(3):
-                        di, dj, dk = int(axis == 0), int(axis == 1), int(axis == 2)
-                        lo, lo_ok = _at(values, reach, nbr, row, i - di, j - dj, k - dk)
-                        hi, hi_ok = _at(values, reach, nbr, row, i + di, j + dj, k + dk)
-                        d = half_difference(lo, lo_ok, f, hi, hi_ok)
-                        g2 += d * d
-                    near = f * f <= b2 * g2
-                    s = (sb >> k) & 1 == 1
-                    active[r, i, j, k] = s or near
+                    f = buf[i, j, k]
+                    dx = half_difference(buf[i - 1, j, k], ok[i - 1, j, k], f, buf[i + 1, j, k], ok[i + 1, j, k])
+                    dy = half_difference(buf[i, j - 1, k], ok[i, j - 1, k], f, buf[i, j + 1, k], ok[i, j + 1, k])
+                    dz = half_difference(buf[i, j, k - 1], ok[i, j, k - 1], f, buf[i, j, k + 1], ok[i, j, k + 1])
+                    near = f * f <= b2 * (dx * dx + dy * dy + dz * dz)
+                    s = (sb >> (k - 1)) & 1 == 1
+                    active[r, i - 1, j - 1, k - 1] = s or near
                     if s and not near:
                         m += 1
         by_sign[r] = m

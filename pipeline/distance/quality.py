@@ -103,16 +103,12 @@ def _gradient_hist(vals, act, nbr, h, hist, chunks, inside):
                 _negate_inside(inside, nbr, b, buf, ibuf)
             for i in range(1, 9):
                 for j in range(1, 9):
-                    # a row's gradients without branches first (the loop vectorises), the
-                    # histogram after: 0.43-0.50 -> 0.22-0.37 s for 42M voxels, the same counts
-                    # and sum (the central difference's 0.5 moved out of the square root is exact)
+                    # a row's gradients first, the histogram after (the scatter into the
+                    # counts kept the gradient loop from vectorising): 0.43-0.52 -> 0.22-0.38 s
+                    # for 42M voxels, the same counts and sum
                     for k in range(1, 9):
-                        dx = buf[i + 1, j, k] - buf[i - 1, j, k]
-                        dy = buf[i, j + 1, k] - buf[i, j - 1, k]
-                        dz = buf[i, j, k + 1] - buf[i, j, k - 1]
-                        row[k - 1] = 0.5 * math.sqrt(dx * dx + dy * dy + dz * dz) * inv
-                        good[k - 1] = (abuf[i, j, k] & abuf[i - 1, j, k] & abuf[i + 1, j, k] & abuf[i, j - 1, k]
-                                       & abuf[i, j + 1, k] & abuf[i, j, k - 1] & abuf[i, j, k + 1])
+                        dx, dy, dz, good[k - 1] = central_gradient_at(buf, abuf, i, j, k)
+                        row[k - 1] = math.sqrt(dx * dx + dy * dy + dz * dz) * inv
                     for k in range(8):
                         if good[k]:
                             g = row[k]
